@@ -1,0 +1,371 @@
+"""Tests of the GP dynamics model (full GP and FITC) against independent computations."""
+
+from __future__ import annotations
+
+import io
+import math
+
+import numpy as np
+import pytest
+import torch
+
+from harness.errors import NumericalError
+from plugins.pilco.gp import (
+    CURB_LOG_LS,
+    CURB_LOG_SNR,
+    GPHyperparameters,
+    GPModel,
+    full_posterior,
+    hyp_curb_penalty,
+    input_scale,
+    negative_log_marginal_likelihood,
+    penalised_nll,
+    predict_latent,
+)
+from plugins.pilco.kernels import se_ard
+from plugins.pilco.sparse import fitc_negative_log_likelihood, fitc_posterior
+
+DT = torch.float64
+torch.set_num_threads(1)
+
+
+def gp_sample(n, d, ells, alphas, sigma, seed, low=-3.0, high=3.0):
+    """Inputs uniform in [low, high]^d and targets drawn from E independent SE-ARD GP priors + noise."""
+    g = torch.Generator().manual_seed(seed)
+    x = low + (high - low) * torch.rand(n, d, generator=g, dtype=DT)
+    e = len(alphas)
+    log_ell = torch.log(torch.tensor(ells, dtype=DT)).reshape(e, d)
+    log_alpha = torch.log(torch.tensor(alphas, dtype=DT))
+    chol = torch.linalg.cholesky(se_ard(x, x, log_ell, log_alpha) + 1e-10 * torch.eye(n, dtype=DT))
+    f = (chol @ torch.randn(e, n, 1, generator=g, dtype=DT))[..., 0].T
+    return x, f + sigma * torch.randn(n, e, generator=g, dtype=DT)
+
+
+def random_hyp(e, d, gen):
+    return GPHyperparameters(
+        log_ell=torch.log(0.5 + torch.rand(e, d, generator=gen, dtype=DT)),
+        log_alpha=torch.log(0.5 + torch.rand(e, generator=gen, dtype=DT)),
+        log_sigma=torch.log(0.05 + 0.2 * torch.rand(e, generator=gen, dtype=DT)),
+    )
+
+
+def explicit_kernel(a, b, log_ell, log_alpha):
+    """One output's SE-ARD Gram matrix with explicit loops over the points (numpy, independent)."""
+    ell, alpha2 = np.exp(log_ell), math.exp(2 * log_alpha)
+    out = np.empty((a.shape[0], b.shape[0]))
+    for i in range(a.shape[0]):
+        for j in range(b.shape[0]):
+            r = (a[i] - b[j]) / ell
+            out[i, j] = alpha2 * math.exp(-0.5 * float(r @ r))
+    return out
+
+
+# ----------------------------------------------------------------------------- full GP maths
+
+
+def test_nll_matches_multivariate_normal_log_density():
+    gen = torch.Generator().manual_seed(1)
+    x = torch.randn(25, 2, generator=gen, dtype=DT)
+    y = torch.randn(25, 3, generator=gen, dtype=DT)
+    h = random_hyp(3, 2, gen)
+    nll = negative_log_marginal_likelihood(x, y, h.log_ell, h.log_alpha, h.log_sigma)
+    for a in range(3):
+        cov = explicit_kernel(x.numpy(), x.numpy(), h.log_ell[a].numpy(), float(h.log_alpha[a]))
+        cov += math.exp(2 * float(h.log_sigma[a])) * np.eye(25)
+        dist = torch.distributions.MultivariateNormal(torch.zeros(25, dtype=DT), torch.tensor(cov))
+        assert float(nll[a]) == pytest.approx(-float(dist.log_prob(y[:, a])), rel=1e-10)
+
+
+def test_hyp_curb_penalty_formula():
+    gen = torch.Generator().manual_seed(2)
+    x = torch.randn(30, 3, generator=gen, dtype=DT) * torch.tensor([0.1, 1.0, 5.0], dtype=DT)
+    s = x.numpy().std(0, ddof=1)
+    h = random_hyp(2, 3, gen)
+    h.log_ell[0, 0] = math.log(s[0] * 300.0)  # outside the box: large
+    h.log_sigma[1] = h.log_alpha[1] - math.log(2000.0)
+    pen = hyp_curb_penalty(h.log_ell, h.log_alpha, h.log_sigma, input_scale(x))
+    for a in range(2):
+        want = sum(((float(h.log_ell[a, i]) - math.log(s[i])) / math.log(100)) ** 30 for i in range(3))
+        want += ((float(h.log_alpha[a]) - float(h.log_sigma[a])) / math.log(1000)) ** 30
+        assert float(pen[a]) == pytest.approx(want, rel=1e-10)
+    assert float(pen[0]) > 100 and float(pen[1]) > 10  # (log 300/log 100)^30, (log 2000/log 1000)^30
+
+
+def test_penalised_nll_gradient_matches_central_differences():
+    gen = torch.Generator().manual_seed(3)
+    x = torch.randn(20, 2, generator=gen, dtype=DT)
+    y = torch.sin(x[:, :1] * 2) + 0.1 * torch.randn(20, 2, generator=gen, dtype=DT)
+    s = input_scale(x)
+    h = random_hyp(2, 2, gen)
+    h.log_ell[1, 0] = torch.log(s[0]) + 1.1 * CURB_LOG_LS  # length-scale penalty gradient is active here
+    flat = torch.cat([h.log_ell.reshape(-1), h.log_alpha, h.log_sigma]).requires_grad_(True)
+
+    def f(v):
+        hh = GPHyperparameters(v[:4].reshape(2, 2), v[4:6], v[6:8])
+        return penalised_nll(x, y, hh).sum()
+
+    (grad,) = torch.autograd.grad(f(flat), flat)
+    eps = 1e-6
+    fd = torch.zeros_like(grad)
+    with torch.no_grad():
+        for i in range(flat.numel()):
+            step = torch.zeros_like(flat)
+            step[i] = eps
+            fd[i] = (f(flat + step) - f(flat - step)) / (2 * eps)
+    torch.testing.assert_close(grad, fd, rtol=1e-6, atol=1e-6)
+    assert float(grad.abs().max()) > 100.0  # a non-trivial gradient
+
+
+def test_snr_penalty_gradient_matches_central_differences():
+    """Beyond SNR 1000 the NLL itself is ill-conditioned, so the SNR term is checked on its own."""
+    log_ell = torch.zeros(1, 1, dtype=DT)
+    s = torch.ones(1, dtype=DT)
+    v = torch.tensor([0.3, 0.3 - 1.07 * CURB_LOG_SNR], dtype=DT, requires_grad=True)
+
+    def f(w):
+        return hyp_curb_penalty(log_ell, w[:1], w[1:], s).sum()
+
+    (grad,) = torch.autograd.grad(f(v), v)
+    eps = 1e-6
+    with torch.no_grad():
+        fd = torch.stack([(f(v + eps * e) - f(v - eps * e)) / (2 * eps) for e in torch.eye(2, dtype=DT)])
+    torch.testing.assert_close(grad, fd, rtol=1e-7, atol=1e-9)
+    assert float(grad[0]) > 10.0 and float(grad[1]) == pytest.approx(-float(grad[0]))
+
+
+def test_predictions_match_paper_equations_7_8():
+    gen = torch.Generator().manual_seed(4)
+    x = torch.randn(30, 2, generator=gen, dtype=DT)
+    y = torch.randn(30, 2, generator=gen, dtype=DT)
+    xs = torch.randn(7, 2, generator=gen, dtype=DT)
+    h = random_hyp(2, 2, gen)
+    mean, var = predict_latent(full_posterior(x, y, h.log_ell, h.log_alpha, h.log_sigma), xs)
+    for a in range(2):
+        k = explicit_kernel(x.numpy(), x.numpy(), h.log_ell[a].numpy(), float(h.log_alpha[a]))
+        k += math.exp(2 * float(h.log_sigma[a])) * np.eye(30)
+        ks = explicit_kernel(x.numpy(), xs.numpy(), h.log_ell[a].numpy(), float(h.log_alpha[a]))
+        m_want = ks.T @ np.linalg.solve(k, y[:, a].numpy())
+        v_want = math.exp(2 * float(h.log_alpha[a])) - np.einsum("ij,ij->j", ks, np.linalg.solve(k, ks))
+        np.testing.assert_allclose(mean[:, a].numpy(), m_want, rtol=1e-9, atol=1e-10)
+        np.testing.assert_allclose(var[:, a].numpy(), v_want, rtol=1e-7, atol=1e-10)
+
+
+# ----------------------------------------------------------------------------- training
+
+
+def test_recovers_lengthscale_and_noise_1d():
+    """Targets drawn from GP priors with ell = 0.7 / 1.5 and noise std 0.05 (n = 200).
+
+    Tolerance: length-scales within 20 %, noise within 25 % (5 seeds give ell 0.62-0.68, 1.41-1.67
+    and noise 0.045-0.054).
+    """
+    x, y = gp_sample(200, 1, [0.7, 1.5], [1.0, 2.0], 0.05, seed=0)
+    report = GPModel().fit(x, y)
+    ell = report.hyperparameters.log_ell.exp()[:, 0]
+    sigma = report.hyperparameters.log_sigma.exp()
+    np.testing.assert_allclose(ell.numpy(), [0.7, 1.5], rtol=0.20)
+    np.testing.assert_allclose(sigma.numpy(), [0.05, 0.05], rtol=0.25)
+    assert not report.sparse and report.n_points == 200
+
+
+def test_recovers_lengthscales_and_noise_3d():
+    """Two outputs on 3-D inputs with ell = (0.5, 1, 2) and (2, 1, 0.7), noise 0.05, n = 300."""
+    ells = [[0.5, 1.0, 2.0], [2.0, 1.0, 0.7]]
+    x, y = gp_sample(300, 3, sum(ells, []), [1.0, 1.0], 0.05, seed=0)
+    report = GPModel().fit(x, y)
+    np.testing.assert_allclose(report.hyperparameters.log_ell.exp().numpy(), ells, rtol=0.20)
+    np.testing.assert_allclose(report.hyperparameters.log_sigma.exp().numpy(), [0.05, 0.05], rtol=0.25)
+
+
+def test_curb_keeps_lengthscale_and_snr_in_the_box():
+    """An irrelevant input drives its length-scale to the optimiser's edge and noise-free targets drive
+    the noise to its floor without hypCurb; with it, both stay (softly) inside the box."""
+    gen = torch.Generator().manual_seed(5)
+    x = torch.rand(60, 2, generator=gen, dtype=DT) * 4 - 2
+    y = torch.sin(2 * x[:, :1])  # noise free, second input irrelevant
+    s = input_scale(x)
+    loose = GPModel(curb=False).fit(x, y).hyperparameters
+    tight = GPModel(curb=True).fit(x, y).hyperparameters
+    loose_ls = float((loose.log_ell[0, 1] - torch.log(s[1])) / CURB_LOG_LS)
+    tight_ls = float((tight.log_ell[0, 1] - torch.log(s[1])) / CURB_LOG_LS)
+    loose_snr = float((loose.log_alpha[0] - loose.log_sigma[0]) / CURB_LOG_SNR)
+    tight_snr = float((tight.log_alpha[0] - tight.log_sigma[0]) / CURB_LOG_SNR)
+    assert loose_ls > 1.2 and loose_snr > 1.2  # the data really push out of the box
+    assert tight_ls < 1.1 and tight_snr < 1.1
+
+
+def test_degenerate_data_train_and_predict_finite():
+    """Constant non-zero target, all-zero target, triplicated inputs and a constant input column."""
+    gen = torch.Generator().manual_seed(6)
+    base = torch.rand(15, 2, generator=gen, dtype=DT)
+    x = torch.cat([base, base, base])
+    x = torch.cat([x, torch.full((45, 1), 0.3, dtype=DT)], dim=1)
+    y = torch.stack([torch.full((45,), 3.0, dtype=DT), torch.zeros(45, dtype=DT)], dim=1)
+    model = GPModel()
+    report = model.fit(x, y, restarts=1)
+    h = report.hyperparameters
+    assert all(bool(torch.isfinite(t).all()) for t in (h.log_ell, h.log_alpha, h.log_sigma))
+    xs = torch.cat([x[:5], torch.randn(5, 3, generator=gen, dtype=DT) * 10])
+    mean, var = model.predict(xs)
+    assert bool(torch.isfinite(mean).all()) and bool(torch.isfinite(var).all())
+    np.testing.assert_allclose(mean[:5].numpy(), [[3.0, 0.0]] * 5, atol=1e-2)
+    assert float(var.min()) > -1e-8
+
+
+def test_non_finite_data_raise_numerical_error():
+    x = torch.randn(10, 2, dtype=DT)
+    y = torch.randn(10, 1, dtype=DT)
+    y[3, 0] = float("nan")
+    with pytest.raises(NumericalError):
+        GPModel().fit(x, y)
+
+
+def test_restarts_keep_the_best_run_per_output():
+    gen = torch.Generator().manual_seed(7)
+    x = torch.rand(25, 2, generator=gen, dtype=DT) * 6 - 3
+    y = torch.stack([torch.sin(3 * x[:, 0]), torch.cos(x[:, 1]) * x[:, 0]], 1)
+    y = y + 0.1 * torch.randn(25, 2, generator=gen, dtype=DT)
+    report = GPModel().fit(x, y, restarts=5, seed=3)
+    runs = report.restart_nlls
+    assert runs.shape == (6, 2)
+    assert np.ptp(runs, axis=0).max() > 1e-3  # the restarts really end in different optima
+    with torch.no_grad():
+        got = penalised_nll(x, y, report.hyperparameters).numpy()
+    np.testing.assert_allclose(got, runs.min(0), rtol=1e-10)
+    np.testing.assert_allclose(report.nll_per_output, runs.min(0), rtol=1e-12)
+    # run 0 is the unperturbed reference initialisation
+    plain = GPModel().fit(x, y)
+    np.testing.assert_allclose(runs[0], plain.nll_per_output, rtol=1e-10)
+    assert np.all(got <= plain.nll_per_output + 1e-9)
+
+
+def test_warm_start_reaches_the_same_optimum_faster():
+    x, y = gp_sample(80, 2, [0.8, 1.2], [1.0], 0.05, seed=8)
+    model = GPModel()
+    first = model.fit(x, y)
+    second = model.fit(x, y, warm_start=model.hyperparameters)
+    assert second.evaluations < first.evaluations
+    assert second.nll == pytest.approx(first.nll, abs=1e-4)
+
+
+# ----------------------------------------------------------------------------- FITC
+
+
+def fitc_setup(seed, n=40, m=10, d=2, e=2):
+    gen = torch.Generator().manual_seed(seed)
+    x = torch.randn(n, d, generator=gen, dtype=DT)
+    y = torch.sin(x @ torch.randn(d, e, generator=gen, dtype=DT)) + 0.1 * torch.randn(n, e, generator=gen, dtype=DT)
+    z = torch.randn(m, d, generator=gen, dtype=DT)
+    return x, y, z, random_hyp(e, d, gen)
+
+
+def textbook_fitc(x, y, z, log_ell, log_alpha, log_sigma, xs, ridge=1e-6):
+    """FITC with explicit n x n matrices (numpy): NLML, predictive mean and latent variance."""
+    xn, zn, xsn = x.numpy(), z.numpy(), xs.numpy()
+    a2 = math.exp(2 * log_alpha)
+    kmm = explicit_kernel(zn, zn, log_ell, log_alpha) + ridge * a2 * np.eye(len(zn))
+    kmn = explicit_kernel(zn, xn, log_ell, log_alpha)
+    kms = explicit_kernel(zn, xsn, log_ell, log_alpha)
+    qnn = kmn.T @ np.linalg.solve(kmm, kmn)
+    lam = np.diag(a2 - np.diag(qnn) + math.exp(2 * log_sigma))
+    cov = qnn + lam
+    _, logdet = np.linalg.slogdet(cov)
+    nll = 0.5 * (y @ np.linalg.solve(cov, y) + logdet + len(y) * math.log(2 * math.pi))
+    qsn = kms.T @ np.linalg.solve(kmm, kmn)
+    mean = qsn @ np.linalg.solve(cov, y)
+    var = a2 - np.einsum("ij,ji->i", qsn, np.linalg.solve(cov, qsn.T))
+    return nll, mean, var
+
+
+def test_fitc_nll_and_posterior_match_textbook_formulas():
+    x, y, z, h = fitc_setup(9)
+    xs = torch.randn(6, 2, generator=torch.Generator().manual_seed(10), dtype=DT)
+    nll = fitc_negative_log_likelihood(x, y, z, h.log_ell, h.log_alpha, h.log_sigma)
+    post = fitc_posterior(x, y, z, h.log_ell, h.log_alpha, h.log_sigma)
+    assert post.inputs.shape == (10, 2) and post.beta.shape == (2, 10) and post.inv_k.shape == (2, 10, 10)
+    mean, var = predict_latent(post, xs)
+    for a in range(2):
+        args = (h.log_ell[a].numpy(), float(h.log_alpha[a]), float(h.log_sigma[a]))
+        nll_w, mean_w, var_w = textbook_fitc(x, y[:, a].numpy(), z, *args, xs)
+        assert float(nll[a]) == pytest.approx(nll_w, rel=1e-9)
+        np.testing.assert_allclose(mean[:, a].numpy(), mean_w, rtol=1e-7, atol=1e-9)
+        np.testing.assert_allclose(var[:, a].numpy(), var_w, rtol=1e-6, atol=1e-8)
+
+
+def test_fitc_nll_gradient_wrt_pseudo_inputs_matches_central_differences():
+    x, y, z, h = fitc_setup(11, m=6)
+    zz = z.clone().requires_grad_(True)
+
+    def f(v):
+        return fitc_negative_log_likelihood(x, y, v, h.log_ell, h.log_alpha, h.log_sigma).sum()
+
+    (grad,) = torch.autograd.grad(f(zz), zz)
+    fd = torch.zeros_like(z)
+    eps = 1e-6
+    with torch.no_grad():
+        for i in range(z.shape[0]):
+            for j in range(z.shape[1]):
+                step = torch.zeros_like(z)
+                step[i, j] = eps
+                fd[i, j] = (f(z + step) - f(z - step)) / (2 * eps)
+    torch.testing.assert_close(grad, fd, rtol=1e-5, atol=1e-6)
+
+
+def test_fitc_with_pseudo_inputs_at_training_inputs_equals_full_gp():
+    x, y, _, h = fitc_setup(12, n=30)
+    xs = torch.randn(8, 2, generator=torch.Generator().manual_seed(13), dtype=DT)
+    args = (h.log_ell, h.log_alpha, h.log_sigma)
+    full = negative_log_marginal_likelihood(x, y, *args)
+    sparse = fitc_negative_log_likelihood(x, y, x, *args, ridge=1e-10)
+    torch.testing.assert_close(sparse, full, rtol=1e-6, atol=1e-6)
+    m_full, v_full = predict_latent(full_posterior(x, y, *args), xs)
+    m_fitc, v_fitc = predict_latent(fitc_posterior(x, y, x, *args, ridge=1e-10), xs)
+    torch.testing.assert_close(m_fitc, m_full, rtol=1e-5, atol=1e-6)
+    torch.testing.assert_close(v_fitc, v_full, rtol=1e-4, atol=1e-6)
+    # the default ridge (1e-6 alpha^2) changes predictions slightly (the gap is linear in the ridge)
+    m_def, v_def = predict_latent(fitc_posterior(x, y, x, *args), xs)
+    torch.testing.assert_close(m_def, m_full, rtol=0, atol=1e-2)
+    torch.testing.assert_close(v_def, v_full, rtol=0, atol=1e-3)
+
+
+def test_sparse_takes_over_above_threshold_and_optimises_pseudo_inputs():
+    gen = torch.Generator().manual_seed(14)
+    x = torch.rand(100, 1, generator=gen, dtype=DT) * 6 - 3
+    y = torch.sin(2 * x) + 0.05 * torch.randn(100, 1, generator=gen, dtype=DT)
+    opts = dict(sparse_threshold=60, num_pseudo=12, max_evals_full=200, max_evals_fitc=200)
+
+    small = GPModel(**opts).fit(x[:50], y[:50])
+    assert not small.sparse and small.hyperparameters.pseudo_inputs is None
+
+    model = GPModel(**opts)
+    report = model.fit(x, y, seed=1)
+    assert report.sparse and report.n_points == 100 and report.n_hyper_points == 60
+    assert model.posterior().inputs.shape == (12, 1)
+    # same seed, no pseudo-input optimisation: the initial random subset
+    unoptimised = GPModel(**{**opts, "max_evals_fitc": 0}).fit(x, y, seed=1)
+    assert report.fitc_nll < unoptimised.fitc_nll - 1.0
+    # the sparse model predicts the function
+    xs = torch.linspace(-2.8, 2.8, 50, dtype=DT)[:, None]
+    mean, var = model.predict(xs)
+    assert float((mean - torch.sin(2 * xs)).abs().max()) < 0.1
+    assert float(var.min()) > -1e-8
+
+    # a warm start keeps the previous pseudo-inputs (budget 0 => unchanged)
+    again = GPModel(**{**opts, "max_evals_fitc": 0}).fit(x, y, warm_start=report.hyperparameters, seed=2)
+    torch.testing.assert_close(again.hyperparameters.pseudo_inputs, report.hyperparameters.pseudo_inputs)
+
+
+@pytest.mark.parametrize("sparse", [False, True])
+def test_state_dict_round_trip(sparse):
+    x, y = gp_sample(70, 2, [0.8, 1.2, 1.0, 0.5], [1.0, 0.5], 0.05, seed=15)
+    model = GPModel(sparse_threshold=50 if sparse else 300, num_pseudo=10, max_evals_full=60, max_evals_fitc=60)
+    model.fit(x, y)
+    buffer = io.BytesIO()
+    torch.save(model.state_dict(), buffer)
+    buffer.seek(0)
+    restored = GPModel(num_pseudo=10)
+    restored.load_state_dict(torch.load(buffer, weights_only=True))
+    assert restored.sparse == sparse
+    xs = torch.randn(5, 2, dtype=DT)
+    for got, want in zip(restored.predict(xs), model.predict(xs)):
+        torch.testing.assert_close(got, want, rtol=1e-12, atol=1e-12)
