@@ -1,0 +1,168 @@
+"""Cart-pole swing-up as in the PILCO reference implementation V0.9 (``scenarios/cartPole``).
+
+State ``x = [x, xdot, thetadot, theta]`` (m, m/s, rad/s, rad), ``theta = 0`` with the pole
+hanging down, one control: the horizontal force on the cart (N). A uniform pole of length ``l``
+and mass ``m`` is hinged at the cart (mass ``M``); the cart feels viscous friction ``b xdot``:
+
+    xddot     = [2 m l thd^2 sin th + 3 m g sin th cos th + 4 f - 4 b xd] / [4 (M + m) - 3 m cos^2 th]
+    thetaddot = [-3 m l thd^2 sin th cos th - 6 (M + m) g sin th - 6 (f - b xd) cos th]
+                / [4 l (M + m) - 3 m l cos^2 th]
+
+(Deisenroth's thesis, App. C; ``tests/tasks/test_cartpole.py`` re-derives them from a sympy
+Lagrangian.) The pole tip is at ``(x + l sin th, -l cos th)``; the goal is the tip at ``(0, l)``.
+"""
+
+from __future__ import annotations
+
+import math
+from collections.abc import Sequence
+from dataclasses import dataclass
+
+import numpy as np
+
+from harness.options import Option
+from harness.task import Episode, SaturatingCost, Task, TaskSpec
+from tasks.drawing import Canvas
+from tasks.simulation import OdeEnv
+
+
+
+@dataclass(frozen=True)
+class CartPoleParams:
+    """Physical parameters (SI units); defaults are ``dynamics_cp.m`` of V0.9."""
+
+    cart_mass: float = 0.5  # M, kg
+    pole_mass: float = 0.5  # m, kg
+    pole_length: float = 0.5  # l, m
+    friction: float = 0.1  # b, N/(m/s)
+    gravity: float = 9.82  # g, m/s^2
+
+
+def cartpole_rhs(z: Sequence[float], u: Sequence[float], p: CartPoleParams) -> tuple[float, float, float, float]:
+    """dz/dt for ``z = [x, xdot, thetadot, theta]`` and force ``u = [f]`` (N)."""
+    _, xd, thd, th = z
+    f = u[0]
+    big_m, m, l, b, g = p.cart_mass, p.pole_mass, p.pole_length, p.friction, p.gravity
+    s, c = math.sin(th), math.cos(th)
+    den = 4.0 * (big_m + m) - 3.0 * m * c * c
+    xdd = (2.0 * m * l * thd * thd * s + 3.0 * m * g * s * c + 4.0 * f - 4.0 * b * xd) / den
+    thdd = (-3.0 * m * l * thd * thd * s * c - 6.0 * (big_m + m) * g * s - 6.0 * (f - b * xd) * c) / (l * den)
+    return xd, xdd, thdd, thd
+
+
+def cartpole_energy(z: Sequence[float], p: CartPoleParams) -> float:
+    """Total mechanical energy (J), zero potential at the pivot height.
+
+    ``(M+m) xd^2/2 + m l^2 thd^2/6 + m l (xd thd - g) cos th / 2`` (``dynamics_cp.m``, 2 args).
+    """
+    _, xd, thd, th = z
+    big_m, m, l, g = p.cart_mass, p.pole_mass, p.pole_length, p.gravity
+    return (big_m + m) * xd**2 / 2 + m * l**2 * thd**2 / 6 + m * l * (xd * thd - g) * math.cos(th) / 2
+
+
+def pole_tip(states: np.ndarray, pole_length: float) -> np.ndarray:
+    """Pole-tip position ``(x + l sin th, -l cos th)``; ``(..., 4)`` -> ``(..., 2)`` metres."""
+    states = np.asarray(states, dtype=np.float64)
+    th = states[..., 3]
+    return np.stack([states[..., 0] + pole_length * np.sin(th), -pole_length * np.cos(th)], axis=-1)
+
+
+class CartPole(Task):
+    """Cart-pole swing-up (PILCO V0.9 defaults: l = 0.5 m, dt = 0.1 s, 40 steps, |f| <= 10 N).
+
+    Start ``N(0, 0.1^2 I)`` (hanging down); observations carry ``N(0, 0.01^2)`` noise; cost
+    ``1 - exp(-d^2 / (2 * 0.25^2))`` with ``d`` the pole tip's distance to ``(0, l)``.
+
+    Success: the TRUE pole tip (``episode.states``) is within 8 cm of the upright target
+    ``(0, l)`` in each of the last 10 recorded states (the final 1 s at dt = 0.1 s), the episode
+    has at least 10 steps and was not terminated.
+    """
+
+    name = "cartpole"
+    description = "Cart-pole swing-up, PILCO reference implementation V0.9 (l=0.5 m, dt=0.1 s, 4 s)"
+    options = (
+        Option("pole_length", float, 0.5, "pole length l in metres (0.6: the paper-era variant)", low=0.05, high=5.0),
+        Option("horizon", int, 40, "control steps per episode (dt = 0.1 s)", low=10),
+        Option("measurement_noise", float, 0.01, "std of the Gaussian noise on every observed state entry", low=0.0),
+        Option("cost_width", float, 0.25, "width sigma_c of the saturating cost, metres", low=1e-3),
+        Option("substeps", int, 20, "RK4 sub-steps per control period (accuracy vs speed)", low=1),
+    )
+
+    dt = 0.1
+    force_limit = 10.0
+    success_radius = 0.08
+    success_steps = 10
+
+    def __init__(self, **options) -> None:
+        super().__init__(**options)
+        self.params = CartPoleParams(pole_length=self.options["pole_length"])
+        self._spec = self._build_spec()
+
+    def _build_spec(self) -> TaskSpec:
+        l = self.params.pole_length
+        # features a = [x, xd, thd, th, sin th, cos th]; residual = tip - (0, l)
+        cost = SaturatingCost(
+            angle_map=np.array([[0.0, 0.0, 0.0, 1.0]]),
+            linear_map=np.array([[1.0, 0.0, 0.0, 0.0, l, 0.0], [0.0, 0.0, 0.0, 0.0, 0.0, -l]]),
+            target=np.array([0.0, l]),
+            width=self.options["cost_width"],
+        )
+        return TaskSpec(
+            name=self.name,
+            state_names=("x [m]", "xdot [m/s]", "thetadot [rad/s]", "theta [rad]"),
+            action_names=("force [N]",),
+            dt=self.dt,
+            horizon=self.options["horizon"],
+            action_low=np.array([-self.force_limit]),
+            action_high=np.array([self.force_limit]),
+            init_mean=np.zeros(4),
+            init_cov=0.1**2 * np.eye(4),
+            angle_indices=(3,),
+            cost=cost,
+            measurement_noise_std=np.full(4, self.options["measurement_noise"]),
+            options=dict(self.options),
+        )
+
+    @property
+    def spec(self) -> TaskSpec:
+        return self._spec
+
+    def rhs(self, z: Sequence[float], u: Sequence[float]) -> tuple[float, float, float, float]:
+        """The task's right-hand side with its physical parameters bound."""
+        return cartpole_rhs(z, u, self.params)
+
+    def make_env(self, render_mode: str | None = None, measurement_noise: bool = True) -> OdeEnv:
+        return OdeEnv(
+            self._spec,
+            self.rhs,
+            substeps=self.options["substeps"],
+            draw=self.draw,
+            render_mode=render_mode,
+            measurement_noise=measurement_noise,
+        )
+
+    def success(self, episode: Episode) -> bool:
+        if episode.terminated or episode.steps < self.success_steps:
+            return False
+        tips = pole_tip(episode.states[-self.success_steps:], self.params.pole_length)
+        dist = np.hypot(tips[:, 0], tips[:, 1] - self.params.pole_length)
+        return bool(np.all(dist <= self.success_radius))
+
+    def draw(self, state: np.ndarray) -> np.ndarray:
+        """RGB image of the cart-pole: track, cart, pole and the target marker."""
+        l = self.params.pole_length
+        x, th = float(state[0]), float(state[3])
+        half = max(2.4, abs(x) + l + 0.3)
+        canvas = Canvas((-half, half), (-1.5 * l - 0.2, 1.5 * l + 0.2), width=480)
+        canvas.segment((-half, -0.06), (half, -0.06), 0.01, (120, 120, 120))
+        canvas.disc(0.0, l, 0.03, (230, 60, 60))
+        canvas.rectangle(x, 0.0, 0.15, 0.05, (40, 40, 40))
+        tip = (x + l * math.sin(th), -l * math.cos(th))
+        canvas.segment((x, 0.0), tip, 0.03, (200, 140, 40))
+        canvas.disc(x, 0.0, 0.02, (90, 90, 200))
+        return canvas.image
+
+
+def make_gym_env(render_mode: str | None = None, **options) -> OdeEnv:
+    """Entry point of ``gymnasium.make("harness/CartPoleSwingUp-v0", **options)``."""
+    return CartPole(**options).make_env(render_mode=render_mode)

@@ -1,0 +1,219 @@
+"""The one integration path of all simulated tasks, and the gymnasium environment around it.
+
+Integration
+-----------
+:func:`rk4_zoh` advances ``dz/dt = f(z, u)`` over one control period ``dt`` with the control held
+constant (zero-order hold, as ``plant.ctrl = @zoh`` in the reference implementation) using
+``substeps`` classical fourth-order Runge-Kutta steps of length ``dt / substeps``. The right-hand
+side works on plain Python floats (sequences in, tuple out): on 4-12 dimensional states, numpy's
+per-call overhead would cost more than the arithmetic.
+
+The reference implementation integrates with ``ode45`` at ``RelTol = AbsTol = 1e-12``.
+:func:`reference_step` is that integration here (``solve_ivp``, DOP853, ``rtol = atol = 1e-12``);
+each task documents the one-step error of its default sub-step count against it, and
+``tests/tasks/`` checks those figures.
+
+Environment
+-----------
+:class:`OdeEnv` is the generic gymnasium environment of ODE tasks. It implements the contract of
+:mod:`harness.task`: the true state starts from ``N(init_mean, init_cov)``, the observation is the
+true state plus Gaussian measurement noise (``spec.measurement_noise_std``; switch off with
+``measurement_noise=False``), the reward is ``-spec.cost(true next state)``, ``truncated`` after
+``spec.horizon`` steps, ``terminated`` when the task's ``left_region`` predicate says so, and
+``info = {"state": true state, "action_clipped": bool}``.
+"""
+
+from __future__ import annotations
+
+import math
+from collections.abc import Callable, Sequence
+from typing import Any
+
+import gymnasium as gym
+import numpy as np
+
+from harness.errors import InteractionError, NumericalError
+from harness.task import TaskSpec, check_action
+
+#: ``f(z, u) -> dz/dt``: state and control as float sequences, derivative as a tuple of floats.
+RightHandSide = Callable[[Sequence[float], Sequence[float]], Sequence[float]]
+
+
+def rk4_zoh(rhs: RightHandSide, z: Sequence[float], u: Sequence[float], dt: float, substeps: int) -> list[float]:
+    """Advance ``z`` by ``dt`` seconds with control ``u`` held constant.
+
+    Args:
+        rhs: ``f(z, u)``, the time-invariant right-hand side.
+        z: state, length ``n`` (floats).
+        u: control, length ``F`` (floats), constant over the step.
+        dt: control period, seconds.
+        substeps: number of classical RK4 steps of length ``dt / substeps``.
+
+    Returns:
+        The state after ``dt`` seconds as a list of ``n`` floats.
+    """
+    h = dt / substeps
+    half = 0.5 * h
+    sixth = h / 6.0
+    z = [float(v) for v in z]
+    for _ in range(substeps):
+        k1 = rhs(z, u)
+        k2 = rhs([a + half * b for a, b in zip(z, k1)], u)
+        k3 = rhs([a + half * b for a, b in zip(z, k2)], u)
+        k4 = rhs([a + h * b for a, b in zip(z, k3)], u)
+        z = [a + sixth * (b1 + 2.0 * b2 + 2.0 * b3 + b4) for a, b1, b2, b3, b4 in zip(z, k1, k2, k3, k4)]
+    return z
+
+
+def reference_step(rhs: RightHandSide, z: Sequence[float], u: Sequence[float], dt: float, tol: float = 1e-12) -> np.ndarray:
+    """The same step as :func:`rk4_zoh` by ``scipy.integrate.solve_ivp`` (DOP853, ``rtol = atol = tol``).
+
+    For accuracy checks only (about a thousand times slower than :func:`rk4_zoh`).
+    """
+    from scipy.integrate import solve_ivp
+
+    u = [float(v) for v in u]
+    sol = solve_ivp(
+        lambda t, y: rhs(y.tolist(), u), (0.0, dt), np.asarray(z, dtype=np.float64),
+        method="DOP853", rtol=tol, atol=tol,
+    )
+    if not sol.success:
+        raise NumericalError(f"reference integration failed: {sol.message}")
+    return sol.y[:, -1]
+
+
+Drawer = Callable[[np.ndarray], np.ndarray]
+
+
+class OdeEnv(gym.Env):
+    """Gymnasium environment of a task whose system is an ODE, stepped with :func:`rk4_zoh`.
+
+    Args:
+        spec: the task's :class:`~harness.task.TaskSpec` (bounds, horizon, cost, noise, initial
+            distribution).
+        rhs: ``f(z, u)`` on the *physical* state.
+        substeps: RK4 sub-steps per control period.
+        left_region: ``pred(state) -> bool``, true when the system left its allowed region
+            (the episode then ends with ``terminated = True``); ``None``: never.
+        draw: ``draw(state) -> (H, W, 3) uint8`` image, used by ``render_mode="rgb_array"``.
+        render_mode: ``None`` or ``"rgb_array"``.
+        measurement_noise: add ``N(0, diag(spec.measurement_noise_std^2))`` to observations.
+        physical_from_state, state_from_physical: maps between the task state ``x`` (shape
+            ``(D,)``, what the cost, the observation and ``info["state"]`` use) and the integrated
+            physical state; identity when ``None`` (``spec.physical_state_dim`` is ``None``).
+
+    Reset options: ``{"state": x0}`` starts from the given true state instead of sampling it.
+    After the episode ended (terminated or truncated) ``step`` raises
+    :class:`~harness.errors.InteractionError` until the next ``reset``.
+    """
+
+    def __init__(
+        self,
+        spec: TaskSpec,
+        rhs: RightHandSide,
+        substeps: int,
+        *,
+        left_region: Callable[[np.ndarray], bool] | None = None,
+        draw: Drawer | None = None,
+        render_mode: str | None = None,
+        measurement_noise: bool = True,
+        physical_from_state: Callable[[np.ndarray], Sequence[float]] | None = None,
+        state_from_physical: Callable[[Sequence[float]], np.ndarray] | None = None,
+    ) -> None:
+        if render_mode not in (None, "rgb_array"):
+            raise ValueError(f"{spec.name}: render_mode must be None or 'rgb_array', got {render_mode!r}")
+        if render_mode is not None and draw is None:
+            raise ValueError(f"{spec.name}: no drawing function for render_mode {render_mode!r}")
+        if substeps < 1:
+            raise ValueError("substeps must be >= 1")
+        self.spec_ = spec
+        self.metadata = {"render_modes": ["rgb_array"], "render_fps": max(1, int(round(1.0 / spec.dt)))}
+        self.render_mode = render_mode
+        self._rhs = rhs
+        self._substeps = int(substeps)
+        self._left_region = left_region
+        self._draw = draw
+        self._noise = measurement_noise
+        self._noise_std = spec.measurement_noise_std.copy()
+        self._chol0 = _cholesky_psd(spec.init_cov)
+        self._to_physical = physical_from_state
+        self._from_physical = state_from_physical
+        d = spec.state_dim
+        self.observation_space = gym.spaces.Box(-np.inf, np.inf, shape=(d,), dtype=np.float64)
+        self.action_space = gym.spaces.Box(spec.action_low, spec.action_high, dtype=np.float64)
+        self._z: list[float] | None = None
+        self._state: np.ndarray | None = None
+        self._t = 0
+        self._done = True
+        #: number of clipped actions in the current episode.
+        self.clipped_actions = 0
+
+    @property
+    def task_spec(self) -> TaskSpec:
+        """The task's spec (``env.spec`` is gymnasium's registration spec)."""
+        return self.spec_
+
+    @property
+    def state(self) -> np.ndarray:
+        """Current true state ``x``, shape ``(D,)``."""
+        if self._state is None:
+            raise InteractionError(f"{self.spec_.name}: call reset() before reading the state")
+        return self._state.copy()
+
+    def _observe(self, state: np.ndarray) -> np.ndarray:
+        if not self._noise:
+            return state.copy()
+        return state + self._noise_std * self.np_random.standard_normal(state.shape[0])
+
+    def reset(self, *, seed: int | None = None, options: dict[str, Any] | None = None):
+        super().reset(seed=seed)
+        spec = self.spec_
+        if options and options.get("state") is not None:
+            state = np.asarray(options["state"], dtype=np.float64).reshape(-1).copy()
+            if state.shape != (spec.state_dim,) or not np.all(np.isfinite(state)):
+                raise ValueError(f"{spec.name}: reset state must be finite with shape ({spec.state_dim},)")
+        else:
+            state = spec.init_mean + self._chol0 @ self.np_random.standard_normal(spec.state_dim)
+        self._state = state
+        self._z = list(self._to_physical(state)) if self._to_physical else state.tolist()
+        self._t = 0
+        self._done = False
+        self.clipped_actions = 0
+        return self._observe(state), {"state": state.copy()}
+
+    def step(self, action):
+        spec = self.spec_
+        if self._done:
+            raise InteractionError(
+                f"{spec.name}: step() called {'before reset()' if self._z is None else 'after the episode ended'}; "
+                "call reset() first"
+            )
+        u, clipped = check_action(action, spec)
+        z = rk4_zoh(self._rhs, self._z, u.tolist(), spec.dt, self._substeps)
+        if not all(math.isfinite(v) for v in z):
+            self._done = True
+            raise NumericalError(f"{spec.name}: the simulation produced a non-finite state at step {self._t}")
+        state = self._from_physical(z) if self._from_physical else np.array(z)
+        self._z, self._state = z, state
+        self._t += 1
+        self.clipped_actions += int(clipped)
+        reward = -float(spec.cost(state))
+        terminated = bool(self._left_region(state)) if self._left_region else False
+        truncated = self._t >= spec.horizon
+        self._done = terminated or truncated
+        return self._observe(state), reward, terminated, truncated, {"state": state.copy(), "action_clipped": clipped}
+
+    def render(self):
+        if self.render_mode != "rgb_array":
+            return None
+        if self._state is None:
+            raise InteractionError(f"{self.spec_.name}: call reset() before render()")
+        return self._draw(self._state)
+
+
+def _cholesky_psd(cov: np.ndarray) -> np.ndarray:
+    """A factor ``L`` with ``L L^T = cov`` for a symmetric PSD ``cov`` (zero variances allowed)."""
+    w, v = np.linalg.eigh(0.5 * (cov + cov.T))
+    if np.min(w) < -1e-12 * max(1.0, float(np.max(np.abs(w)))):
+        raise ValueError("init_cov is not positive semi-definite")
+    return v * np.sqrt(np.clip(w, 0.0, None))
