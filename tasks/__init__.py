@@ -9,3 +9,4 @@ import gymnasium
 gymnasium.register(id="harness/CartPoleSwingUp-v0", entry_point="tasks.cartpole:make_gym_env")
 gymnasium.register(id="harness/CartDoublePendulumSwingUp-v0", entry_point="tasks.double_pendulum:make_gym_env")
 gymnasium.register(id="harness/Unicycle-v0", entry_point="tasks.unicycle:make_gym_env")
+gymnasium.register(id="harness/DMCCartpoleSwingup-v0", entry_point="tasks.dmc_cartpole:make_gym_env")
