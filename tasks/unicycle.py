@@ -72,7 +72,8 @@ ACTION_NAMES = ("u_t turntable torque [Nm]", "u_w wheel torque [Nm]")
 OBS_FROM_ODE = (0, 1, 2, 3, 4, 7, 8, 10)  # ODE indices of obs entries 0-4, 7, 8, 9
 OBS_IDENTITY = (0, 1, 2, 3, 4, 7, 8, 9)  # the matching observation indices
 
-#: RK4 sub-steps per second of system time: 30 per 0.15 s control step. One-step max-abs error
+#: Default RK4 sub-steps per second of system time: 30 per 0.15 s control step (option
+#: ``substeps``; 4 right-hand-side calls of ~12 us each per sub-step). One-step max-abs error
 #: against :func:`tasks.simulation.reference_step`: 2.8e-6 (worst of 10 states with rates up to
 #: 2 rad/s, angles up to 0.6 rad, torques at the bounds; ``test_rk4_step_matches_reference_solver``
 #: checks < 1e-5). States already falling (angles ~1.2 rad, rates ~3 rad/s) reach errors of order 1:
@@ -472,6 +473,8 @@ class Unicycle(Task):
         Option("horizon", int, 67, "control steps per episode (dt = 0.15 s)", low=1),
         Option("measurement_noise", float, 1.0,
                "scale of the observation noise stds (0.01 on rates, 0.003 on the rest); 0 = none", low=0.0),
+        Option("substeps", int, round(SUBSTEPS_PER_SECOND * 0.15),
+               "RK4 sub-steps per 0.15 s control step (accuracy vs speed; see tasks.unicycle)", low=1),
     )
 
     dt = 0.15
@@ -523,7 +526,7 @@ class Unicycle(Task):
             self.init_mean12,
             self.init_cov12,
             rhs=self.rhs,
-            substeps=max(1, round(SUBSTEPS_PER_SECOND * self.dt)),
+            substeps=self.options["substeps"],
             left_region=self.fallen,
             draw=self.draw,
             render_mode=render_mode,

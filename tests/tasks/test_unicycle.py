@@ -329,10 +329,23 @@ def test_spec_bounds_names_and_options():
     assert spec.action_names[0].startswith("u_t") and spec.action_names[1].startswith("u_w")
     np.testing.assert_allclose(spec.measurement_noise_std, [0.01] * 5 + [0.003] * 5)
     np.testing.assert_allclose(Unicycle(measurement_noise=2).spec.measurement_noise_std, [0.02] * 5 + [0.006] * 5)
+    assert Unicycle().options["substeps"] == 30
     with pytest.raises(OptionError):
         Unicycle(init="thesis")
     with pytest.raises(OptionError):
         Unicycle(horizn=10)
+
+
+@pytest.mark.parametrize("substeps", [10, 30])
+def test_env_step_is_the_shared_rk4_step(substeps):
+    task = Unicycle(measurement_noise=0.0, substeps=substeps)
+    env = task.make_env()
+    x0 = np.r_[0.1, -0.2, 0.3, 0.05, 1.0, 0.4, -0.3, 0.05, 0.2, -0.1]
+    env.reset(options={"state": x0})
+    u = np.array([3.0, -20.0])
+    _, _, _, _, info = env.step(u)
+    expected = rk4_zoh(task.rhs, physical_from_observation(x0), u.tolist(), 0.15, substeps)
+    np.testing.assert_array_equal(info["state"], observation_from_physical(np.array(expected)))
 
 
 def test_render_rgb_array():
