@@ -221,19 +221,19 @@ def test_non_finite_data_raise_numerical_error():
 
 
 def test_restarts_keep_the_best_run_per_output():
-    gen = torch.Generator().manual_seed(7)
-    x = torch.rand(25, 2, generator=gen, dtype=DT) * 6 - 3
-    y = torch.stack([torch.sin(3 * x[:, 0]), torch.cos(x[:, 1]) * x[:, 0]], 1)
-    y = y + 0.1 * torch.randn(25, 2, generator=gen, dtype=DT)
-    report = GPModel().fit(x, y, restarts=5, seed=3)
+    """Few noisy points of wiggly functions: the optimum reached depends on the start."""
+    gen = torch.Generator().manual_seed(4)
+    x = torch.rand(15, 1, generator=gen, dtype=DT) * 6 - 3
+    y = torch.cat([torch.sin(4 * x), torch.sin(x) * x], 1) + 0.3 * torch.randn(15, 2, generator=gen, dtype=DT)
+    report = GPModel().fit(x, y, restarts=5, seed=0)
     runs = report.restart_nlls
     assert runs.shape == (6, 2)
-    assert np.ptp(runs, axis=0).max() > 1e-3  # the restarts really end in different optima
+    assert runs[0, 1] > runs[:, 1].min() + 1.0  # the unperturbed run is not the best for output 1
     with torch.no_grad():
         got = penalised_nll(x, y, report.hyperparameters).numpy()
     np.testing.assert_allclose(got, runs.min(0), rtol=1e-10)
     np.testing.assert_allclose(report.nll_per_output, runs.min(0), rtol=1e-12)
-    # run 0 is the unperturbed reference initialisation
+    # run 0 is the reference initialisation without perturbation
     plain = GPModel().fit(x, y)
     np.testing.assert_allclose(runs[0], plain.nll_per_output, rtol=1e-10)
     assert np.all(got <= plain.nll_per_output + 1e-9)
