@@ -438,13 +438,20 @@ class UnicycleEnv(OdeEnv):
         return super().reset(options={**(options or {}), "state": observation_from_physical(z0)})
 
 
+_FROZEN = (0.0,) * 12
+
+
 class Unicycle(Task):
     """Robotic unicycle balancing (PILCO, ICML 2011 §5; reference implementation ``scenarios/unicycle``).
 
     Observation: the 10 planning states ``[thetadot, phidot, psidot_w, psidot_f, psidot_t, x_c, y_c,
     theta, phi, psi_f]`` (see the module docstring); controls ``[u_t, u_w]`` = turntable and wheel
     torques, ``|u_t| <= 10``, ``|u_w| <= 50`` Nm; ``dt = 0.15`` s, 67 steps (10 s). The episode
-    terminates when the unicycle falls: ``|theta| > pi/2`` or ``|psi_f| > pi/2``.
+    terminates when the unicycle falls: ``|theta| > pi/2`` or ``|psi_f| > pi/2`` (the reference's
+    constraint); in the simulation the fall region is absorbing (:meth:`rhs`). A fall passes close
+    to the singularity of ``A``, so about 1 % of the terminal states carry rates above 100 rad/s
+    (measured with uniformly random torques from the ``paper`` start); the reference drops the
+    transition that violates the constraint from its training data.
 
     Angles: ``theta``, ``phi`` and ``psi_f`` (observation indices 7, 8, 9) are angles, but, as the
     reference (``angi = []``), ``spec.angle_indices`` is empty: before a fall they stay within
@@ -513,7 +520,16 @@ class Unicycle(Task):
         return self._spec
 
     def rhs(self, z: Sequence[float], u: Sequence[float]) -> tuple[float, ...]:
-        """The task's right-hand side with its physical parameters bound."""
+        """The task's right-hand side: :func:`unicycle_rhs`, with the fall region made absorbing.
+
+        Where ``|theta| > pi/2`` or ``|psi_f| > pi/2`` (fallen) the derivative is zero. The
+        episode ends there anyway; freezing the state keeps RK4 from stepping through the
+        singularity of ``A`` at ``|theta| = pi/2`` (where it diverges), and a fall in the middle
+        of a control step is not undone by the end of the step (in Euler angles, a unicycle that
+        passes ``theta = pi/2`` comes back with ``theta`` below ``pi/2`` and yaw turned by ``pi``).
+        """
+        if abs(z[7]) > self.fall_angle or abs(z[10]) > self.fall_angle:
+            return _FROZEN
         return unicycle_rhs(z, u, self.params)
 
     def fallen(self, state: np.ndarray) -> bool:

@@ -176,6 +176,35 @@ def test_integration_stays_finite_for_10_seconds():
     assert all(math.isfinite(v) for v in z)
 
 
+def test_full_random_torques_from_the_paper_start_stay_finite_and_falls_terminate():
+    """Falls pass near the singularity of A at |theta| = pi/2; the task's absorbing fall region
+    keeps every state finite, and every fall ends its episode (no NumericalError)."""
+    task = Unicycle(measurement_noise=0.0)
+    spec = task.spec
+    env = task.make_env()
+    rng = np.random.default_rng(10)
+    env.reset(seed=10)
+    falls = 0
+    for _ in range(800):
+        _, _, terminated, truncated, info = env.step(rng.uniform(spec.action_low, spec.action_high))
+        assert np.all(np.isfinite(info["state"]))
+        assert terminated == task.fallen(info["state"])
+        if terminated or truncated:
+            falls += int(terminated)
+            env.reset()
+    assert falls > 100  # the paper's start spread with random torques falls within a few steps
+
+
+def test_fall_region_is_absorbing():
+    task = Unicycle()
+    z = [1.0, -2.0, 3.0, 0.5, 4.0, 0.0, 0.0, 1.6, 0.0, 0.0, 0.2, 0.0]
+    assert task.rhs(z, [10.0, 50.0]) == (0.0,) * 12
+    z[7], z[10] = 0.2, -1.6
+    assert task.rhs(z, [10.0, 50.0]) == (0.0,) * 12
+    z[10] = 0.3
+    assert task.rhs(z, [10.0, 50.0]) == unicycle_rhs(z, [10.0, 50.0], PARAMS)
+
+
 def test_rk4_step_matches_reference_solver():
     """One control step (0.15 s, 30 RK4 sub-steps) against DOP853 at 1e-12, torques at the bounds,
     rates up to 2 rad/s and angles up to 0.6 rad: max-abs state error below 1e-5."""
