@@ -139,18 +139,15 @@ def unicycle_matrices(
     a1 = phd * sf * pfd * ct + phd * cf * st * thd + cf * pfd * thd
     a2 = phd * cf * pfd * ct - phd * sf * st * thd - pfd * sf * thd
 
-    def P(rho: float) -> float:
-        return (sf * pfd * ww * r_w + cf * phd * ct * thd * r_w - w3 * sf * ww * r_w + phd * ct * thd * rho
-                - w2 * (thd * r_w + w1 * rho))
-
-    def Q(rho: float) -> float:
-        return w1 * sf * ww * r_w + a2 * rho + w2 * (-cf * ww * r_w - w3 * rho)
-
-    def R(rho: float) -> float:
-        return (-cf * pfd * ww * r_w + sf * phd * ct * thd * r_w + w1 * (thd * r_w + w1 * rho)
-                - w3 * (-cf * ww * r_w - w3 * rho))
-
-    P_f, P_r, Q_f, Q_r, R_f, R_r = P(r_f), P(r), Q(r_f), Q(r), R(r_f), R(r)
+    # P, Q, R of the reference note are affine in the lever rho: X(rho) = X0 + rho X1
+    wwr = ww * r_w
+    P0 = sf * pfd * wwr + cf * phd * ct * thd * r_w - w3 * sf * wwr - w2 * thd * r_w
+    P1 = phd * ct * thd - w2 * w1
+    Q0 = w1 * sf * wwr - w2 * cf * wwr
+    Q1 = a2 - w2 * w3
+    R0 = -cf * pfd * wwr + sf * phd * ct * thd * r_w + w1 * thd * r_w + w3 * cf * wwr
+    R1 = w1 * w1 + w3 * w3
+    P_f, P_r, Q_f, Q_r, R_f, R_r = P0 + r_f * P1, P0 + r * P1, Q0 + r_f * Q1, Q0 + r * Q1, R0 + r_f * R1, R0 + r * R1
     E1 = -(A_f + C_t) * a1 - (C_f - B_f) * w1 * w3
     E2 = -(B_f + A_t) * a2 + (C_f - A_f) * w2 * w3 + A_t * w2 * w3 + C_t * w3 * wt
     G = r_f * (m_f * g * st - m_f * Q_f + m_t * g * st - m_t * Q_r) + r_t * (m_t * g * st - m_t * Q_r)
