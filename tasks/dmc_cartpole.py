@@ -229,6 +229,7 @@ class DMCCartpole(Task):
         horizon = self.options["horizon"]
         if horizon is None:
             horizon = max(1, round(EPISODE_SECONDS / self.dt))
+            self.options["horizon"] = horizon  # record the resolved value with the run
         mean, cov = swingup_observation_moments()
         self._spec = TaskSpec(
             name=self.name,

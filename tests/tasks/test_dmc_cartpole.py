@@ -155,7 +155,7 @@ def test_dt_is_action_repeat_times_physics_step():
     task = DMCCartpole(action_repeat=5)
     assert task.spec.dt == pytest.approx(0.05) and task.spec.horizon == 200 and task.success_steps == 20
     default = DMCCartpole().spec
-    assert default.dt == pytest.approx(0.1) and default.horizon == 100
+    assert default.dt == pytest.approx(0.1) and default.horizon == 100 and default.options["horizon"] == 100
     environment = task.make_env()
     try:
         environment.reset(seed=0)
