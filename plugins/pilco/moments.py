@@ -1,0 +1,205 @@
+"""GP prediction at an uncertain (Gaussian) input by exact moment matching (paper eqs. 14-23).
+
+Given ``E`` independent SE-ARD GPs (a :class:`~plugins.pilco.posterior.GPPosterior`) and a test
+input ``x ~ N(m, S)`` (``m (d,)``, ``S (d, d)``), :func:`predict_uncertain` returns the exact mean
+``M (E,)`` and covariance ``V (E, E)`` of ``f(x)`` (latent function values, no observation noise)
+and the input-output cross-covariance in the reference implementation's convention::
+
+    C = S^-1 cov[x, f(x)]        shape (d, E),   i.e.  cov[x, f(x)] = S @ C.
+
+This convention lets cross-covariances chain through a sequence of maps: if ``x`` is a block of a
+larger jointly Gaussian vector ``y`` with ``cov[y, x] = S_yx``, then ``cov[y, f(x)] = S_yx @ C``
+(exact for jointly Gaussian ``(y, x)``). It never needs ``S^-1`` itself, so singular ``S`` is fine.
+
+Notation (paper, reference ``gp0``): ``Lambda_a = diag(ell_a^2)``, ``nu_i = X_i - m``,
+``q_ai = alpha_a^2 |S Lambda_a^-1 + I|^-1/2 exp(-1/2 nu_i^T (S + Lambda_a)^-1 nu_i)``,
+``M_a = beta_a^T q_a`` and, with ``R = S (Lambda_a^-1 + Lambda_b^-1) + I`` and
+``z_ij = Lambda_a^-1 nu_i + Lambda_b^-1 nu_j``::
+
+    Q_ij  = k_a(X_i, m) k_b(X_j, m) |R|^-1/2 exp(1/2 z_ij^T R^-1 S z_ij)
+    V_ab  = beta_a^T Q beta_b - M_a M_b + delta_ab (alpha_a^2 - tr(inv_k_a Q_aa)).
+
+``mean_only=True`` drops the model-uncertainty term ``alpha_a^2 - tr(inv_k_a Q_aa)``: the moments
+of the GP *mean function* under the input distribution. That is the RBF controller's form
+(reference ``gp2``) and the deterministic-GP-mean ablation.
+
+Implementation notes (all float64, vectorised over outputs and basis points):
+
+* ``|B|`` and ``B^-1`` only for the symmetric positive-definite ``B = D S D + I`` (``D`` diagonal),
+  via Cholesky: ``R^-1 S = D^-1 (I - B^-1) D^-1`` with ``D^2 = Lambda_a^-1 + Lambda_b^-1`` and
+  ``|R| = |B|``; ``B >= I`` so the factorisation cannot fail.
+* The ``Q`` exponent uses the expanded bilinear form
+  ``z^T T z = a^T T a + b^T T b + 2 a^T T b`` (``T = R^-1 S / 2``) evaluated for all ``(i, j)`` as
+  one matrix product of augmented factors ``[2 T a_i, u_i, 1] . [b_j, 1, v_j]``; no
+  ``(n, n, E, E, d)`` tensor is ever formed.
+* Only the ``E (E + 1) / 2`` output pairs ``a <= b`` are computed (``Q_ba = Q_ab^T``), the ``E``
+  diagonal pairs first so that ``Q_aa`` is a view for the trace term.
+"""
+
+from __future__ import annotations
+
+from functools import lru_cache
+
+import torch
+
+from plugins.pilco.posterior import GPPosterior
+
+
+@lru_cache(maxsize=32)
+def _pair_indices(num_outputs: int) -> tuple[torch.Tensor, torch.Tensor, torch.Tensor]:
+    """Output pairs ``(a, b)``, ``a <= b``: diagonal pairs first, then ``a < b``.
+
+    Returns ``(first (P,), second (P,), full (E*E,))``; ``full[a * E + b]`` is the pair index of
+    ``(min(a, b), max(a, b))``, used to expand pair results to a symmetric ``(E, E)`` matrix.
+    """
+    e = num_outputs
+    pairs = [(a, a) for a in range(e)] + [(a, b) for a in range(e) for b in range(a + 1, e)]
+    lookup = {p: k for k, p in enumerate(pairs)}
+    full = [lookup[(min(a, b), max(a, b))] for a in range(e) for b in range(e)]
+    as_long = lambda values: torch.tensor(values, dtype=torch.long)  # noqa: E731
+    return as_long([p[0] for p in pairs]), as_long([p[1] for p in pairs]), as_long(full)
+
+
+class _ExpBilinearContraction(torch.autograd.Function):
+    """``Q_p = exp(left_p @ right_p^T)`` contracted, with a hand-written backward.
+
+    Inputs: ``left, right (P, n, k)``, ``w_left, w_right (P, n)``, ``inv_k (E', n, n)`` symmetric
+    (``E' <= P``; ``E' = 0`` for no trace term). Outputs: ``quad (P,) = w_left_p^T Q_p w_right_p``
+    and ``trace (E',) = sum_ij inv_k_a,ij Q_a,ij`` (= ``tr(inv_k_a Q_a)`` for symmetric ``Q_a``).
+
+    Only ``Q`` (``P n^2``) is stored for the backward pass; the backward makes about four passes
+    over ``P n^2`` numbers (autograd on the same expression needs twice that plus zero-fills).
+    """
+
+    @staticmethod
+    def forward(ctx, left, right, w_left, w_right, inv_k):
+        Q = torch.bmm(left, right.mT).exp_()
+        q_wr = torch.bmm(Q, w_right[..., None]).squeeze(-1)  # (P, n)
+        quad = (q_wr * w_left).sum(-1)
+        e = inv_k.shape[0]
+        nn = Q.shape[1] * Q.shape[2]
+        trace = torch.bmm(inv_k.reshape(e, 1, nn), Q[:e].reshape(e, nn, 1)).reshape(e)
+        ctx.save_for_backward(left, right, w_left, w_right, inv_k, Q, q_wr)
+        return quad, trace
+
+    @staticmethod
+    @torch.autograd.function.once_differentiable
+    def backward(ctx, g_quad, g_trace):
+        left, right, w_left, w_right, inv_k, Q, q_wr = ctx.saved_tensors
+        e = inv_k.shape[0]
+        if g_quad is None:
+            g_quad = torch.zeros(Q.shape[0], dtype=Q.dtype)
+        G = (w_left * g_quad[:, None])[:, :, None] * w_right[:, None, :]  # dL/dQ (P, n, n)
+        if e > 0 and g_trace is not None:
+            G[:e].add_(inv_k * g_trace[:, None, None])
+        G.mul_(Q)  # dL/d(exponent)
+        grad_left = torch.bmm(G, right) if ctx.needs_input_grad[0] else None
+        grad_right = torch.bmm(G.mT, left) if ctx.needs_input_grad[1] else None
+        grad_wl = g_quad[:, None] * q_wr if ctx.needs_input_grad[2] else None
+        grad_wr = g_quad[:, None] * torch.bmm(Q.mT, w_left[..., None]).squeeze(-1) if ctx.needs_input_grad[3] else None
+        grad_inv = None
+        if ctx.needs_input_grad[4] and g_trace is not None:
+            grad_inv = g_trace[:, None, None] * Q[:e]
+        return grad_left, grad_right, grad_wl, grad_wr, grad_inv
+
+
+class MomentMatchingGP:
+    """A :class:`GPPosterior` prepared for repeated moment matching (:meth:`predict`).
+
+    Everything that depends only on the posterior (scales, pair selections, ``X Lambda^-1``) is
+    computed once here; build one per policy evaluation (for the RBF policy: once per J, inside
+    the autograd graph, so gradients reach its parameters), then call :meth:`predict` per step.
+    """
+
+    def __init__(self, posterior: GPPosterior) -> None:
+        self.posterior = posterior
+        beta = posterior.beta
+        self.num_outputs = e = beta.shape[0]
+        first, second, self.full = _pair_indices(e)
+        X = posterior.inputs
+        self.inv_ell = torch.exp(-posterior.log_ell)  # (E, d)
+        inv_lam = self.inv_ell * self.inv_ell  # (E, d) diagonal of Lambda_a^-1
+        self.log_alpha2 = 2.0 * posterior.log_alpha  # (E,)
+        self.alpha2 = torch.exp(self.log_alpha2)
+        self.X = X
+        self.X_s = X * self.inv_ell[:, None, :]  # (E, n, d)  iL_a X_i
+        self.dh = torch.sqrt(inv_lam[first] + inv_lam[second])  # (P, d)
+        self.inv_dd = 1.0 / (self.dh[:, :, None] * self.dh[:, None, :])  # (P, d, d)
+        self.scale = torch.cat([self.inv_ell, self.dh], dim=0)  # (E + P, d)
+        self.scale_outer = self.scale[:, :, None] * self.scale[:, None, :]  # (E + P, d, d)
+        self.inv_lam_a, self.inv_lam_b = inv_lam[first], inv_lam[second]  # (P, d)
+        self.X_a = X * self.inv_lam_a[:, None, :]  # (P, n, d)  Lambda_a^-1 X_i
+        self.X_b = X * self.inv_lam_b[:, None, :]
+        self.first, self.second = first, second
+        self.beta = beta
+        self.beta_a, self.beta_b = beta[first], beta[second]
+        self.inv_k = posterior.inv_k.contiguous()
+
+    def predict(
+        self, m: torch.Tensor, S: torch.Tensor, mean_only: bool = False
+    ) -> tuple[torch.Tensor, torch.Tensor, torch.Tensor]:
+        """Moments of ``f(x)`` for ``x ~ N(m, S)``: ``M (E,)``, ``V (E, E)``, ``C (d, E)``.
+
+        See :func:`predict_uncertain` for the meaning of the arguments and results.
+        """
+        e = self.num_outputs
+        d = m.shape[0]
+        eye = torch.eye(d, dtype=S.dtype, device=S.device)
+
+        # One batched Cholesky for B_a = iL_a S iL_a + I (mean, cross-cov; E of them) and for
+        # B_ab = D S D + I, D^2 = Lambda_a^-1 + Lambda_b^-1 (Q; P of them).
+        chol = torch.linalg.cholesky(self.scale_outer * S + eye)
+        b_inv = torch.cholesky_inverse(chol)  # (E + P, d, d)
+        half_logdet = torch.log(torch.diagonal(chol, dim1=-2, dim2=-1)).sum(-1)  # (E + P,)
+
+        # ---- mean and cross-covariance --------------------------------------------------------
+        nu_s = self.X_s - m * self.inv_ell[:, None, :]  # (E, n, d)  iL_a nu_i,  nu_i = X_i - m
+        t = nu_s @ b_inv[:e]  # (E, n, d)  B_a^-1 iL_a nu_i
+        sq = (nu_s * nu_s).sum(-1)  # (E, n)
+        log_q = (self.log_alpha2 - half_logdet[:e])[:, None] - 0.5 * (nu_s * t).sum(-1)  # (E, n)
+        lb = torch.exp(log_q) * self.beta  # (E, n)  beta_ai q_ai
+        M = lb.sum(-1)
+        # S^-1 cov[x, f_a] = sum_i beta_ai q_ai (S + Lambda_a)^-1 nu_i,  (S + Lambda_a)^-1 nu_i = iL_a t_ai
+        C = (lb[:, None, :] @ t).squeeze(1).T * self.inv_ell.T  # (d, E)
+
+        # ---- second moments: Q for the pairs a <= b -------------------------------------------
+        # T = R^-1 S / 2 = D^-1 (I - B^-1) D^-1 / 2 with R = S (Lambda_a^-1 + Lambda_b^-1) + I
+        T = 0.5 * (eye - b_inv[e:]) * self.inv_dd  # (P, d, d)
+        za = self.X_a - m * self.inv_lam_a[:, None, :]  # (P, n, d)  Lambda_a^-1 nu_i
+        zb = self.X_b - m * self.inv_lam_b[:, None, :]  # (P, n, d)  Lambda_b^-1 nu_j
+        za_t = za @ T
+        log_k = self.log_alpha2[:, None] - 0.5 * sq  # (E, n)  log k_a(X_i, m)
+        u = log_k[self.first] + (za_t * za).sum(-1) - half_logdet[e:, None]  # (P, n)
+        v = log_k[self.second] + (zb @ T * zb).sum(-1)  # (P, n)
+        ones = torch.ones_like(u)[..., None]
+        # exponent_ij = 2 a_i^T T b_j + u_i + v_j = log Q_ij  (expanded bilinear form, one product)
+        left = torch.cat([2.0 * za_t, u[..., None], ones], dim=-1)  # (P, n, d + 2)
+        right = torch.cat([zb, ones, v[..., None]], dim=-1)  # (P, n, d + 2)
+        inv_k = self.inv_k[:0] if mean_only else self.inv_k
+        quad, trace = _ExpBilinearContraction.apply(left, right, self.beta_a, self.beta_b, inv_k)
+        V = quad[self.full].reshape(e, e) - M[:, None] * M[None, :]
+        if not mean_only:
+            V = V + torch.diag(self.alpha2 - trace)
+        return M, V, C
+
+
+def predict_uncertain(
+    posterior: GPPosterior, m: torch.Tensor, S: torch.Tensor, mean_only: bool = False
+) -> tuple[torch.Tensor, torch.Tensor, torch.Tensor]:
+    """Moments of ``f(x)`` for ``x ~ N(m, S)`` under ``E`` GPs (paper eqs. 14-16, 20-23).
+
+    Args:
+        posterior: the GPs (basis inputs ``(n, d)``, weights ``beta (E, n)``, ``inv_k (E, n, n)``
+            symmetric).
+        m: ``(d,)`` input mean.
+        S: ``(d, d)`` input covariance (symmetric positive semi-definite; may be singular).
+        mean_only: drop ``alpha_a^2 - tr(inv_k_a Q_aa)`` (moments of the GP mean function only).
+
+    Returns:
+        ``M (E,)`` predictive mean, ``V (E, E)`` predictive covariance (latent f, no observation
+        noise), ``C (d, E)`` with ``cov[x, f(x)] = S @ C``.
+
+    For repeated calls with one posterior use :class:`MomentMatchingGP` (same maths, the
+    posterior-only work done once).
+    """
+    return MomentMatchingGP(posterior).predict(m, S, mean_only)
