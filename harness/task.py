@@ -226,6 +226,8 @@ class Task(ABC):
     options: ClassVar[tuple[Option, ...]] = ()
     #: the pip extra this task needs, e.g. ``"dmc"``; used in "not installed" hints.
     extra: ClassVar[str | None] = None
+    #: top-level modules this plugin needs at use time (checked by discovery, e.g. ``("dm_control",)``).
+    requires: ClassVar[tuple[str, ...]] = ()
 
     def __init__(self, **options: Any) -> None:
         self.options: dict[str, Any] = self.option_set().resolve(options)

@@ -1,0 +1,150 @@
+"""The ``harness`` command line.
+
+    harness list [--options]
+    harness bench --learner L --task T [--seed S] [--max-trials N | --budget-seconds X] [--set k=v ...]
+    harness --version
+
+Errors caused by input (unknown plugin or option, bad value, unwritable store, ...) print one
+line naming the problem and the fix and exit with status 2; ``--debug`` shows the traceback.
+Heavy modules (mlflow, torch) are imported only by the commands that need them.
+"""
+
+from __future__ import annotations
+
+import sys
+from typing import Any
+
+import click
+
+from harness import __version__
+from harness.errors import HarnessError
+
+
+class _Context:
+    debug: bool = False
+
+
+def _fail(message: str, code: int) -> None:
+    click.echo(f"error: {message}", err=True)
+    sys.exit(code)
+
+
+def _guarded(fn):
+    """Turn exceptions into one-line errors (tracebacks only with --debug)."""
+    import functools
+
+    @functools.wraps(fn)
+    def wrapper(*args: Any, **kwargs: Any):
+        try:
+            return fn(*args, **kwargs)
+        except HarnessError as exc:
+            if _Context.debug:
+                raise
+            _fail(str(exc), exc.exit_code)
+        except KeyboardInterrupt:
+            click.echo("interrupted", err=True)
+            sys.exit(130)
+        except click.exceptions.Exit:
+            raise
+        except click.ClickException:
+            raise
+        except Exception as exc:
+            if _Context.debug:
+                raise
+            _fail(f"unexpected {type(exc).__name__}: {exc} (run with --debug for the traceback)", 1)
+
+    return wrapper
+
+
+@click.group(context_settings={"help_option_names": ["-h", "--help"]})
+@click.version_option(__version__, prog_name="harness")
+@click.option("--debug", is_flag=True, help="Show full tracebacks on errors.")
+def main(debug: bool) -> None:
+    """Benchmark data-efficient RL learners (PILCO, SAC, PPO, ...) on control tasks.
+
+    Learners and tasks are plugins found through the entry-point groups ``harness.learners`` and
+    ``harness.tasks``. Results go to MLflow (default: ./mlflow.db, no server needed).
+    """
+    _Context.debug = debug
+
+
+@main.command("list")
+@click.option("--options", "show_options", is_flag=True, help="Also list every plugin's options.")
+@_guarded
+def list_command(show_options: bool) -> None:
+    """List learners and tasks, with broken or unavailable plugins and why."""
+    from harness.discovery import LEARNER_GROUP, TASK_GROUP, list_plugins
+
+    for title, group in (("Learners", LEARNER_GROUP), ("Tasks", TASK_GROUP)):
+        click.echo(f"{title}:")
+        plugins = list_plugins(group)
+        if not plugins:
+            click.echo("  (none installed)")
+        width = max((len(p.name) for p in plugins), default=0)
+        for p in plugins:
+            if p.status == "ok":
+                click.echo(f"  {p.name:<{width}}  {p.description}")
+            else:
+                click.echo(f"  {p.name:<{width}}  [{p.status.upper()}] {p.error}  ({p.distribution})")
+            if show_options and p.cls is not None:
+                for opt in p.cls.option_set():
+                    click.echo(f"  {'':<{width}}    --set {opt.describe()}")
+        click.echo("")
+
+
+def _parse_budget(value: str | None) -> float | None:
+    if value is None:
+        return None
+    try:
+        budget = float(value)
+    except ValueError:
+        raise HarnessError(f"--budget-seconds expects a number of seconds, got {value!r}") from None
+    return budget
+
+
+@main.command("bench")
+@click.option("--learner", "-l", required=True, help="Learner name (see `harness list`).")
+@click.option("--task", "-t", required=True, help="Task name (see `harness list`).")
+@click.option("--seed", default=0, show_default=True, type=int, help="Run seed (>= 0).")
+@click.option("--max-trials", type=int, default=None, help="Stop after this many policy hand-overs.")
+@click.option("--budget-seconds", default=None, help="Stop when this much interaction (system seconds) is used.")
+@click.option("--set", "assignments", multiple=True, metavar="KEY=VALUE", help="Learner or task option (repeatable; prefix learner./task. if ambiguous).")
+@click.option("--eval-episodes", default=10, show_default=True, type=int, help="Evaluation episodes per hand-over.")
+@click.option("--tracking-uri", default=None, help="MLflow store (default: $MLFLOW_TRACKING_URI or sqlite:///./mlflow.db).")
+@click.option("--no-tracking", is_flag=True, help="Do not log to MLflow (results are printed only).")
+@click.option("--quiet", "-q", is_flag=True, help="No progress output.")
+@_guarded
+def bench_command(
+    learner: str,
+    task: str,
+    seed: int,
+    max_trials: int | None,
+    budget_seconds: str | None,
+    assignments: tuple[str, ...],
+    eval_episodes: int,
+    tracking_uri: str | None,
+    no_tracking: bool,
+    quiet: bool,
+) -> None:
+    """Run one learner on one task and report its interaction time to success."""
+    from harness.discovery import load_learner, load_task
+    from harness.options import parse_assignments, split_assignments
+    from harness.progress import RichProgress, SilentProgress
+    from harness.runner import RunConfig, prepare, run
+    from harness.tracking import MemoryTracker, MlflowTracker
+
+    learner_cls, task_cls = load_learner(learner), load_task(task)
+    to_learner, to_task = split_assignments(parse_assignments(assignments), learner_cls.option_set(), task_cls.option_set())
+    config = RunConfig(learner, task, seed, to_learner, to_task, max_trials, _parse_budget(budget_seconds), eval_episodes)
+    prepare(config)  # validate everything before the store is touched
+    tracker = MemoryTracker() if no_tracking else MlflowTracker(tracking_uri)
+    try:
+        result = run(config, tracker=tracker, progress=SilentProgress() if quiet else RichProgress())
+    except KeyboardInterrupt:
+        click.echo(f"interrupted: run {tracker.run_id} marked KILLED", err=True)
+        sys.exit(130)
+    if quiet:
+        click.echo(result.summary())
+    if isinstance(tracker, MlflowTracker):
+        click.echo(f"MLflow run {result.run_id} in experiment '{task}' at {tracker.tracking_uri}")
+        click.echo(f"  browse: mlflow ui --backend-store-uri {tracker.tracking_uri}")

@@ -1,0 +1,92 @@
+"""The learner plugin API.
+
+A learner is constructed with the task's :class:`~harness.task.TaskSpec` (never the environment),
+its resolved options and a seed, and learns through :meth:`Learner.learn`: a generator that acts
+on the system **only** through the harness-owned :class:`~harness.interaction.Interaction` and
+*yields* a policy each time it has a new one to hand over. At each hand-over the harness
+evaluates the policy on its own environment instance and stops the generator (``close()``) once
+the task is solved or the trial / budget limit is reached.
+
+Minimal example (uniform random controls)::
+
+    class RandomLearner(Learner):
+        name = "random"
+        description = "uniform random controls"
+
+        def learn(self, interaction):
+            rng = np.random.default_rng(self.seed)
+            spec = self.spec
+            policy = lambda obs: rng.uniform(spec.action_low, spec.action_high)
+            while True:
+                interaction.rollout(policy)   # one episode, counted by the harness
+                yield policy                  # the harness evaluates it here
+"""
+
+from __future__ import annotations
+
+import pickle
+from abc import ABC, abstractmethod
+from collections.abc import Iterator
+from pathlib import Path
+from typing import TYPE_CHECKING, Any, ClassVar, Protocol
+
+import numpy as np
+
+from harness.options import Option, OptionSet
+from harness.task import TaskSpec
+
+if TYPE_CHECKING:
+    from harness.interaction import Interaction
+
+
+class Policy(Protocol):
+    """A deterministic controller: observation ``(D,)`` -> action ``(F,)`` (in control units)."""
+
+    def __call__(self, observation: np.ndarray) -> np.ndarray: ...
+
+
+class Learner(ABC):
+    """Base class of learner plugins.
+
+    Class attributes:
+        name: the entry-point name, e.g. ``"pilco"``.
+        description: one line for ``harness list``.
+        options: declared options (see :mod:`harness.options`); resolved values arrive in
+            ``self.options``.
+        extra: the pip extra this learner needs (e.g. ``"sb3"``), for install hints.
+    """
+
+    name: ClassVar[str] = ""
+    description: ClassVar[str] = ""
+    options: ClassVar[tuple[Option, ...]] = ()
+    extra: ClassVar[str | None] = None
+    #: top-level modules this plugin needs at use time (checked by discovery, e.g. ``("dm_control",)``).
+    requires: ClassVar[tuple[str, ...]] = ()
+    #: limits used when the user gives neither --max-trials nor --budget-seconds
+    default_max_trials: ClassVar[int | None] = 20
+    default_budget_seconds: ClassVar[float | None] = None
+
+    def __init__(self, spec: TaskSpec, options: dict[str, Any] | None = None, seed: int = 0) -> None:
+        self.spec = spec
+        self.seed = int(seed)
+        self.options: dict[str, Any] = self.option_set().resolve(options)
+        #: per-hand-over numbers the learner wants tracked (e.g. J before/after); the harness
+        #: logs and clears this dict after each hand-over.
+        self.metrics: dict[str, float] = {}
+        #: files (paths) the learner wants attached to the run after each hand-over.
+        self.artifacts: list[Path] = []
+
+    @classmethod
+    def option_set(cls) -> OptionSet:
+        return OptionSet(cls.options, f"learner '{cls.name}'")
+
+    @abstractmethod
+    def learn(self, interaction: Interaction) -> Iterator[Policy]:
+        """Act through ``interaction`` and yield a policy at every hand-over."""
+
+    def save_policy(self, policy: Policy, path: Path) -> Path:
+        """Write ``policy`` to ``path`` (default: pickle) and return the written path."""
+        path = Path(path).with_suffix(".pkl")
+        with open(path, "wb") as fh:
+            pickle.dump(policy, fh)
+        return path

@@ -1,0 +1,73 @@
+"""What a person watching a run sees: one line per hand-over and a bar towards the limit."""
+
+from __future__ import annotations
+
+from typing import Any, Protocol
+
+from rich.console import Console
+from rich.progress import BarColumn, Progress, TextColumn, TimeElapsedColumn
+
+
+class ProgressReporter(Protocol):
+    def start(self, title: str, total: float | None, unit: str) -> None: ...
+
+    def update(self, record: dict[str, Any], completed: float) -> None: ...
+
+    def finish(self, summary: str) -> None: ...
+
+
+class SilentProgress:
+    """Reports nothing (library use, tests, sweep workers)."""
+
+    def start(self, title: str, total: float | None, unit: str) -> None:
+        pass
+
+    def update(self, record: dict[str, Any], completed: float) -> None:
+        pass
+
+    def finish(self, summary: str) -> None:
+        pass
+
+
+def format_record(record: dict[str, Any]) -> str:
+    """``trial 3/10 | 12.0 s interaction | success 30% | eval cost 31.20 | J 25.1 | wall 42 s``."""
+    parts = [f"trial {record['trial']}" + (f"/{record['max_trials']}" if record.get("max_trials") else "")]
+    parts.append(f"{record['interaction_seconds']:.1f} s interaction")
+    parts.append(f"success {100 * record['eval_success_rate']:.0f}%")
+    parts.append(f"eval cost {record['eval_cost']:.2f}")
+    for key, label in (("J_after", "J"), ("predicted_cost", "predicted")):
+        if key in record:
+            parts.append(f"{label} {record[key]:.2f}")
+    parts.append(f"wall {record['wall_seconds']:.0f} s")
+    return " | ".join(parts)
+
+
+class RichProgress:
+    """A rich progress bar (total = trials or budget seconds) and a printed line per hand-over."""
+
+    def __init__(self, console: Console | None = None) -> None:
+        self.console = console or Console(stderr=True)
+        self._progress: Progress | None = None
+        self._task = None
+
+    def start(self, title: str, total: float | None, unit: str) -> None:
+        self._progress = Progress(
+            TextColumn("[bold]{task.description}"),
+            BarColumn(),
+            TextColumn("{task.completed:.0f}/{task.total:.0f} " + unit),
+            TimeElapsedColumn(),
+            console=self.console,
+            transient=True,
+        )
+        self._progress.start()
+        self._task = self._progress.add_task(title, total=total)
+
+    def update(self, record: dict[str, Any], completed: float) -> None:
+        assert self._progress is not None
+        self._progress.console.print(format_record(record), soft_wrap=True)
+        self._progress.update(self._task, completed=completed)
+
+    def finish(self, summary: str) -> None:
+        if self._progress is not None:
+            self._progress.stop()
+        self.console.print(summary, soft_wrap=True)

@@ -1,0 +1,309 @@
+"""One benchmark run: a learner on a task with a seed, until solved or out of trials / budget.
+
+The loop (one *trial* = one policy hand-over)::
+
+    for policy in learner.learn(interaction):        # the learner acts only via `interaction`
+        result = evaluator(policy)                    # separate env, never counted
+        log trial metrics (interaction_seconds, eval_success_rate, eval_cost, wall_seconds, ...)
+        if result.solved: interaction_time_to_success = interaction.seconds; stop
+        if trial == max_trials: stop
+    # BudgetExhaustedError from the interaction ends the run as unsolved ("budget")
+
+*Interaction time to success* is the interaction consumed before the first solved evaluation,
+i.e. the data the successful policy was learned from. An unsolved run has none (``None``),
+never a number. *Trials to success* is the number of interaction episodes (the initial random
+ones included) in that data.
+"""
+
+from __future__ import annotations
+
+import json
+import tempfile
+import time
+from collections.abc import Mapping
+from dataclasses import asdict, dataclass, field
+from pathlib import Path
+from typing import Any
+
+import numpy as np
+
+from harness.discovery import load_learner, load_task
+from harness.errors import BudgetExhaustedError, HarnessError, OptionError
+from harness.evaluation import Evaluator
+from harness.interaction import Interaction
+from harness.learner import Learner
+from harness.progress import ProgressReporter, SilentProgress
+from harness.provenance import git_sha, package_versions
+from harness.seeding import derive_seeds, seed_everything
+from harness.task import Episode, Task
+from harness.tracking import MemoryTracker, Tracker
+
+
+@dataclass
+class RunConfig:
+    """What to run. ``learner_options``/``task_options`` are raw values (strings from the CLI are fine)."""
+
+    learner: str
+    task: str
+    seed: int = 0
+    learner_options: dict[str, Any] = field(default_factory=dict)
+    task_options: dict[str, Any] = field(default_factory=dict)
+    max_trials: int | None = None
+    budget_seconds: float | None = None
+    eval_episodes: int = 10
+
+    def validate(self) -> None:
+        if self.max_trials is not None and self.max_trials < 1:
+            raise OptionError(f"--max-trials must be >= 1, got {self.max_trials}")
+        if self.budget_seconds is not None and not (self.budget_seconds > 0 and np.isfinite(self.budget_seconds)):
+            raise OptionError(f"--budget-seconds must be a positive number of seconds, got {self.budget_seconds}")
+        if self.eval_episodes < 1:
+            raise OptionError(f"--eval-episodes must be >= 1, got {self.eval_episodes}")
+        if self.seed < 0:
+            raise OptionError(f"--seed must be >= 0, got {self.seed}")
+
+
+@dataclass
+class RunResult:
+    """Outcome of a run (also logged to the tracker)."""
+
+    run_id: str | None
+    learner: str
+    task: str
+    seed: int
+    solved: bool
+    interaction_time_to_success: float | None
+    trials_to_success: int | None
+    trials: int
+    interaction_seconds: float
+    interaction_episodes: int
+    wall_seconds: float
+    stop_reason: str
+    history: list[dict[str, float]] = field(default_factory=list)
+
+    def summary(self) -> str:
+        head = f"{self.learner} on {self.task} (seed {self.seed})"
+        if self.solved:
+            return (
+                f"{head}: SOLVED after {self.interaction_time_to_success:.1f} s of interaction "
+                f"({self.trials_to_success} episodes, {self.trials} trials), wall {self.wall_seconds:.0f} s"
+            )
+        return (
+            f"{head}: not solved ({self.stop_reason}) after {self.interaction_seconds:.1f} s of interaction "
+            f"({self.interaction_episodes} episodes, {self.trials} trials), wall {self.wall_seconds:.0f} s"
+        )
+
+
+@dataclass
+class Prepared:
+    """A learner and a task built and validated, ready to run."""
+
+    config: RunConfig
+    task: Task
+    learner_cls: type[Learner]
+    learner_options: dict[str, Any]
+    max_trials: int | None
+    budget_seconds: float | None
+
+
+def prepare(config: RunConfig) -> Prepared:
+    """Load the plugins and validate every option before anything runs or is logged."""
+    config.validate()
+    learner_cls = load_learner(config.learner)
+    task_cls = load_task(config.task)
+    task = task_cls(**config.task_options)
+    learner_options = learner_cls.option_set().resolve(config.learner_options)
+    max_trials, budget = config.max_trials, config.budget_seconds
+    if max_trials is None and budget is None:
+        max_trials, budget = learner_cls.default_max_trials, learner_cls.default_budget_seconds
+    return Prepared(config, task, learner_cls, learner_options, max_trials, budget)
+
+
+def run_params(prep: Prepared) -> dict[str, Any]:
+    """Everything that defines the run, flat, for the tracker's params."""
+    cfg = prep.config
+    params: dict[str, Any] = {
+        "learner": cfg.learner,
+        "task": cfg.task,
+        "seed": cfg.seed,
+        "max_trials": prep.max_trials,
+        "budget_seconds": prep.budget_seconds,
+        "eval_episodes": cfg.eval_episodes,
+        "git_sha": git_sha(),
+    }
+    params.update({f"task.{k}": v for k, v in prep.task.options.items()})
+    params.update({f"learner.{k}": v for k, v in prep.learner_options.items()})
+    params.update({f"version.{k}": v for k, v in package_versions().items()})
+    return params
+
+
+def save_episodes(episodes: tuple[Episode, ...] | list[Episode], path: Path) -> Path:
+    """All episodes in one ``.npz``: arrays ``ep{i}_observations/states/actions/costs``."""
+    arrays: dict[str, np.ndarray] = {}
+    for i, ep in enumerate(episodes):
+        arrays[f"ep{i}_observations"] = ep.observations
+        arrays[f"ep{i}_states"] = ep.states
+        arrays[f"ep{i}_actions"] = ep.actions
+        arrays[f"ep{i}_costs"] = ep.costs
+        arrays[f"ep{i}_terminated"] = np.asarray(ep.terminated)
+    np.savez_compressed(path, **arrays)
+    return path
+
+
+def run(
+    config: RunConfig,
+    tracker: Tracker | None = None,
+    progress: ProgressReporter | None = None,
+    workdir: Path | None = None,
+) -> RunResult:
+    """Run ``config`` to the end and return its :class:`RunResult`.
+
+    The tracker receives params at the start, metrics after every trial, the policy and the
+    interaction episodes as artifacts, and the final status: FINISHED (solved or limits
+    reached), FAILED (an exception; what was logged is kept) or KILLED (Ctrl-C).
+    """
+    prep = prepare(config)
+    tracker = tracker or MemoryTracker()
+    progress = progress or SilentProgress()
+    seeds = derive_seeds(config.seed)
+    seed_everything(config.seed)
+    spec = prep.task.spec
+
+    tracker.start(
+        experiment=config.task,
+        run_name=f"{config.learner}-{config.task}-s{config.seed}",
+        params=run_params(prep),
+        tags={"learner": config.learner, "task": config.task, "seed": str(config.seed)},
+    )
+    own_workdir = workdir is None
+    workdir = Path(tempfile.mkdtemp(prefix="harness-run-")) if workdir is None else Path(workdir)
+    workdir.mkdir(parents=True, exist_ok=True)
+
+    learner = prep.learner_cls(spec, prep.learner_options, seed=seeds["learner"])
+    interaction = Interaction(prep.task.make_env(), spec, budget_seconds=prep.budget_seconds, seed=seeds["interaction"])
+    evaluator = Evaluator(prep.task, n_episodes=config.eval_episodes, seed=seeds["evaluation"])
+
+    total, unit = (prep.max_trials, "trials") if prep.max_trials else (prep.budget_seconds, "s")
+    progress.start(f"{config.learner} on {config.task}", total, unit)
+    start = time.perf_counter()
+    history: list[dict[str, float]] = []
+    solved_at: tuple[float, int] | None = None
+    stop_reason = "learner finished"
+    status = "FAILED"
+    generator = learner.learn(interaction)
+    try:
+        try:
+            for trial, policy in enumerate(generator, start=1):
+                result = evaluator(policy)
+                record: dict[str, Any] = {
+                    "trial": trial,
+                    "interaction_seconds": interaction.seconds,
+                    "interaction_episodes": len(interaction.episodes),
+                    "eval_success_rate": result.success_rate,
+                    "eval_cost": result.mean_cost,
+                    "wall_seconds": time.perf_counter() - start,
+                }
+                record.update({f"eval_{k}": v for k, v in result.mean_extra.items()})
+                record.update(learner.metrics)
+                learner.metrics = {}
+                history.append({k: float(v) for k, v in record.items()})
+                tracker.log_metrics({k: v for k, v in record.items() if k != "trial"}, step=trial)
+                _log_trial_artifacts(tracker, learner, policy, interaction, workdir, trial)
+                progress.update({**record, "max_trials": prep.max_trials}, completed=trial if prep.max_trials else interaction.seconds)
+                if result.solved:
+                    solved_at = (interaction.seconds, len(interaction.episodes))
+                    stop_reason = "solved"
+                    break
+                if prep.max_trials is not None and trial >= prep.max_trials:
+                    stop_reason = "max trials"
+                    break
+        except BudgetExhaustedError:
+            stop_reason = "budget"
+        finally:
+            generator.close()
+        status = "FINISHED"
+    except KeyboardInterrupt:
+        status = "KILLED"
+        raise
+    finally:
+        wall = time.perf_counter() - start
+        run_result = RunResult(
+            run_id=tracker.run_id,
+            learner=config.learner,
+            task=config.task,
+            seed=config.seed,
+            solved=solved_at is not None,
+            interaction_time_to_success=None if solved_at is None else solved_at[0],
+            trials_to_success=None if solved_at is None else solved_at[1],
+            trials=len(history),
+            interaction_seconds=interaction.seconds,
+            interaction_episodes=len(interaction.episodes),
+            wall_seconds=wall,
+            stop_reason=stop_reason if status == "FINISHED" else status.lower(),
+            history=history,
+        )
+        _finish(tracker, run_result, interaction, workdir, status)
+        interaction.close()
+        evaluator.close()
+        if own_workdir:
+            import shutil
+
+            shutil.rmtree(workdir, ignore_errors=True)
+    progress.finish(run_result.summary())
+    return run_result
+
+
+def _log_trial_artifacts(tracker: Tracker, learner: Learner, policy: Any, interaction: Interaction, workdir: Path, trial: int) -> None:
+    policy_dir = workdir / "policies"
+    policy_dir.mkdir(exist_ok=True)
+    try:
+        path = learner.save_policy(policy, policy_dir / f"policy_trial{trial:03d}")
+    except Exception as exc:  # an unpicklable policy must not kill the run; say so in the run
+        tracker.set_tags({f"policy_save_error_trial{trial}": f"{type(exc).__name__}: {exc}"})
+    else:
+        tracker.log_artifact(path, "policies")
+    for extra in learner.artifacts:
+        tracker.log_artifact(Path(extra), f"trial{trial:03d}")
+    learner.artifacts = []
+
+
+def _finish(tracker: Tracker, result: RunResult, interaction: Interaction, workdir: Path, status: str) -> None:
+    """Final metrics, tags, episode data and status; best effort so nothing logged is lost."""
+    try:
+        final = {
+            "solved": float(result.solved),
+            "interaction_seconds_total": result.interaction_seconds,
+            "interaction_episodes_total": float(result.interaction_episodes),
+            "wall_seconds_total": result.wall_seconds,
+        }
+        if result.solved:
+            final["interaction_time_to_success"] = result.interaction_time_to_success
+            final["trials_to_success"] = float(result.trials_to_success)
+        tracker.log_metrics(final, step=result.trials)
+        tracker.set_tags(
+            {
+                "solved": str(result.solved).lower(),
+                "stop_reason": result.stop_reason,
+                "interaction_time_to_success": "" if not result.solved else f"{result.interaction_time_to_success:.6g}",
+                "trials_to_success": "" if not result.solved else str(result.trials_to_success),
+            }
+        )
+        if interaction.episodes:
+            tracker.log_artifact(save_episodes(interaction.episodes, workdir / "interaction_episodes.npz"), "episodes")
+        summary = workdir / "result.json"
+        summary.write_text(json.dumps({k: v for k, v in asdict(result).items() if k != "history"}, indent=2))
+        tracker.log_artifact(summary)
+    finally:
+        tracker.finish(status)  # type: ignore[arg-type]
+
+
+def run_from_names(learner: str, task: str, seed: int = 0, options: Mapping[str, Any] | None = None, **kwargs: Any) -> RunResult:
+    """Library shortcut: ``run_from_names("random", "cartpole", max_trials=3)`` (in-memory tracking)."""
+    from harness.options import split_assignments
+
+    learner_cls, task_cls = load_learner(learner), load_task(task)
+    to_learner, to_task = split_assignments(list((options or {}).items()), learner_cls.option_set(), task_cls.option_set())
+    return run(RunConfig(learner, task, seed, to_learner, to_task, **kwargs))
+
+
+__all__ = ["RunConfig", "RunResult", "prepare", "run", "run_from_names", "HarnessError"]

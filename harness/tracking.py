@@ -1,0 +1,222 @@
+"""Experiment tracking: MLflow (imported lazily: ``import mlflow`` costs ~2.5 s) or in memory.
+
+Default store, no server needed: a SQLite database ``mlflow.db`` in the working directory with
+artifacts in ``./mlruns`` beside it. Override with ``--tracking-uri`` or ``MLFLOW_TRACKING_URI``
+(e.g. ``http://127.0.0.1:5000`` for a shared ``mlflow server``). One experiment per task, one
+run per (learner, task, seed). Browse with::
+
+    mlflow ui --backend-store-uri sqlite:///mlflow.db
+"""
+
+from __future__ import annotations
+
+import logging
+import math
+import os
+from collections.abc import Mapping
+from pathlib import Path
+from typing import Any, Literal, Protocol
+
+from harness.errors import TrackingError
+
+RunStatus = Literal["FINISHED", "FAILED", "KILLED"]
+
+
+def default_tracking_uri(directory: Path | None = None) -> str:
+    """``sqlite:///<abs dir>/mlflow.db`` (``directory`` defaults to the working directory)."""
+    path = (directory or Path.cwd()).resolve() / "mlflow.db"
+    return f"sqlite:///{path}"
+
+
+def resolve_tracking_uri(uri: str | None) -> str:
+    """Explicit ``uri`` > ``MLFLOW_TRACKING_URI`` > the local SQLite default."""
+    return uri or os.environ.get("MLFLOW_TRACKING_URI") or default_tracking_uri()
+
+
+class Tracker(Protocol):
+    """What the runner needs from a tracking backend."""
+
+    run_id: str | None
+
+    def start(self, experiment: str, run_name: str, params: Mapping[str, Any], tags: Mapping[str, str]) -> str: ...
+
+    def log_metrics(self, metrics: Mapping[str, float], step: int) -> None: ...
+
+    def set_tags(self, tags: Mapping[str, Any]) -> None: ...
+
+    def log_artifact(self, path: Path, artifact_path: str | None = None) -> None: ...
+
+    def finish(self, status: RunStatus) -> None: ...
+
+
+def _finite(metrics: Mapping[str, float]) -> dict[str, float]:
+    """Drop non-finite values (MLflow rejects NaN in some stores; a missing metric is honest)."""
+    out = {}
+    for key, value in metrics.items():
+        if value is None:
+            continue
+        value = float(value)
+        if math.isfinite(value):
+            out[key] = value
+    return out
+
+
+class MemoryTracker:
+    """Keeps everything in memory; for library use and tests."""
+
+    def __init__(self) -> None:
+        self.run_id: str | None = None
+        self.experiment: str | None = None
+        self.params: dict[str, str] = {}
+        self.tags: dict[str, str] = {}
+        self.metrics: dict[str, list[tuple[int, float]]] = {}
+        self.artifacts: list[tuple[Path, str | None]] = []
+        self.status: str | None = None
+
+    def start(self, experiment: str, run_name: str, params: Mapping[str, Any], tags: Mapping[str, str]) -> str:
+        self.experiment = experiment
+        self.run_id = run_name
+        self.params = {k: str(v) for k, v in params.items()}
+        self.tags = {k: str(v) for k, v in tags.items()}
+        self.status = "RUNNING"
+        return self.run_id
+
+    def log_metrics(self, metrics: Mapping[str, float], step: int) -> None:
+        for key, value in _finite(metrics).items():
+            self.metrics.setdefault(key, []).append((step, value))
+
+    def set_tags(self, tags: Mapping[str, Any]) -> None:
+        self.tags.update({k: str(v) for k, v in tags.items()})
+
+    def log_artifact(self, path: Path, artifact_path: str | None = None) -> None:
+        self.artifacts.append((Path(path), artifact_path))
+
+    def finish(self, status: RunStatus) -> None:
+        self.status = status
+
+
+class MlflowTracker:
+    """Logs to an MLflow tracking store.
+
+    Args:
+        tracking_uri: store URI; see :func:`resolve_tracking_uri`.
+        parent_run_id: makes the run a child of this run (sweeps).
+        experiment_id: use this experiment instead of looking it up by name (sweeps create it
+            once in the driver, so that concurrent workers never race on creation).
+    """
+
+    def __init__(self, tracking_uri: str | None = None, parent_run_id: str | None = None, experiment_id: str | None = None) -> None:
+        self.tracking_uri = resolve_tracking_uri(tracking_uri)
+        self.parent_run_id = parent_run_id
+        self.experiment_id = experiment_id
+        self.run_id: str | None = None
+        self._client = None
+
+    @property
+    def client(self):
+        if self._client is None:
+            self._client = open_client(self.tracking_uri)
+        return self._client
+
+    def start(self, experiment: str, run_name: str, params: Mapping[str, Any], tags: Mapping[str, str]) -> str:
+        try:
+            experiment_id = self.experiment_id or ensure_experiment(self.client, experiment, self.tracking_uri)
+            all_tags = dict(tags)
+            if self.parent_run_id:
+                all_tags["mlflow.parentRunId"] = self.parent_run_id
+            all_tags["mlflow.runName"] = run_name
+            run = self.client.create_run(experiment_id, run_name=run_name, tags=all_tags)
+            self.run_id = run.info.run_id
+            self._log_params(params)
+        except TrackingError:
+            raise
+        except Exception as exc:
+            raise TrackingError(
+                f"cannot write to the tracking store {self.tracking_uri} ({type(exc).__name__}: {exc}); "
+                "check the path is writable or the server is running, or pass --tracking-uri"
+            ) from exc
+        return self.run_id
+
+    def _log_params(self, params: Mapping[str, Any]) -> None:
+        from mlflow.entities import Param
+
+        items = [Param(str(k), str(v)[:6000]) for k, v in params.items()]
+        for i in range(0, len(items), 100):
+            self.client.log_batch(self.run_id, params=items[i : i + 100])
+
+    def log_metrics(self, metrics: Mapping[str, float], step: int) -> None:
+        import time
+
+        from mlflow.entities import Metric
+
+        now = int(time.time() * 1000)
+        batch = [Metric(k, v, now, int(step)) for k, v in _finite(metrics).items()]
+        if batch:
+            self.client.log_batch(self.run_id, metrics=batch)
+
+    def set_tags(self, tags: Mapping[str, Any]) -> None:
+        from mlflow.entities import RunTag
+
+        self.client.log_batch(self.run_id, tags=[RunTag(k, str(v)) for k, v in tags.items()])
+
+    def log_artifact(self, path: Path, artifact_path: str | None = None) -> None:
+        self.client.log_artifact(self.run_id, str(path), artifact_path)
+
+    def finish(self, status: RunStatus) -> None:
+        if self.run_id is not None:
+            self.client.set_terminated(self.run_id, status)
+
+
+def quiet_mlflow_logging() -> None:
+    """Silence MLflow/alembic INFO chatter ("Creating initial MLflow database tables...")."""
+    for name in ("alembic", "alembic.runtime.migration", "mlflow", "mlflow.store.db.utils"):
+        logging.getLogger(name).setLevel(logging.WARNING)
+
+
+def open_client(tracking_uri: str):
+    """An ``MlflowClient`` for ``tracking_uri``; a :class:`TrackingError` with the fix if it fails."""
+    quiet_mlflow_logging()
+    if tracking_uri.startswith("sqlite:///"):
+        db = Path(tracking_uri[len("sqlite:///"):])
+        if not db.parent.exists() or not os.access(db.parent, os.W_OK):
+            raise TrackingError(
+                f"tracking store directory {db.parent} does not exist or is not writable; "
+                "pass --tracking-uri sqlite:////a/writable/path/mlflow.db"
+            )
+    try:
+        import warnings
+
+        with warnings.catch_warnings():
+            warnings.simplefilter("ignore")
+            from mlflow.tracking import MlflowClient
+
+            client = MlflowClient(tracking_uri=tracking_uri)
+            client.search_experiments(max_results=1)  # opens (and if new, creates) the store
+    except Exception as exc:
+        raise TrackingError(
+            f"cannot open the tracking store {tracking_uri} ({type(exc).__name__}: {str(exc).splitlines()[0] if str(exc) else ''}); "
+            "check the URI, that the server is running, or pass --tracking-uri"
+        ) from exc
+    return client
+
+
+def artifact_location_for(tracking_uri: str, experiment: str) -> str | None:
+    """For a local SQLite store: ``<db dir>/mlruns/<experiment>`` (not the current directory)."""
+    if tracking_uri.startswith("sqlite:///"):
+        db = Path(tracking_uri[len("sqlite:///"):])
+        return (db.parent / "mlruns" / experiment).resolve().as_uri()
+    return None
+
+
+def ensure_experiment(client, name: str, tracking_uri: str) -> str:
+    """The id of experiment ``name``, created if missing (idempotent under a creation race)."""
+    found = client.get_experiment_by_name(name)
+    if found is not None:
+        return found.experiment_id
+    try:
+        return client.create_experiment(name, artifact_location=artifact_location_for(tracking_uri, name))
+    except Exception:
+        found = client.get_experiment_by_name(name)  # another process created it first
+        if found is None:
+            raise
+        return found.experiment_id

@@ -1,0 +1,100 @@
+"""The command line: listing, a real bench run read back from MLflow, and one-line errors."""
+
+from __future__ import annotations
+
+import os
+import subprocess
+import sys
+from pathlib import Path
+
+import pytest
+from click.testing import CliRunner
+
+from harness.cli import main
+
+HARNESS = [sys.executable, "-m", "harness"]
+
+
+def run_cli(*args: str, cwd: Path | None = None, env: dict | None = None) -> subprocess.CompletedProcess:
+    return subprocess.run([*HARNESS, *args], capture_output=True, text=True, cwd=cwd, env=env, timeout=300)
+
+
+def test_help_and_version_do_not_import_mlflow_or_torch():
+    code = (
+        "import sys\n"
+        "from harness.cli import main\n"
+        "try:\n    main(['--help'])\nexcept SystemExit:\n    pass\n"
+        "print('mlflow' in sys.modules, 'torch' in sys.modules)\n"
+    )
+    out = subprocess.run([sys.executable, "-c", code], capture_output=True, text=True, timeout=60).stdout
+    assert out.strip().endswith("False False")
+    assert "harness, version 0.1.0" in CliRunner().invoke(main, ["--version"]).output
+
+
+def test_list_shows_plugins():
+    result = CliRunner().invoke(main, ["list", "--options"])
+    assert result.exit_code == 0
+    assert "random" in result.output and "cartpole" in result.output
+    assert "--set scale (float, default 1.0" in result.output
+
+
+@pytest.mark.parametrize(
+    "args,message",
+    [
+        (["bench", "--learner", "nosuch", "--task", "cartpole"], "unknown learner 'nosuch'. Available learners:"),
+        (["bench", "--learner", "random", "--task", "cartpol"], "Did you mean 'cartpole'?"),
+        (["bench", "-l", "random", "-t", "cartpole", "--set", "bogus=1"], "unknown option 'bogus'"),
+        (["bench", "-l", "random", "-t", "cartpole", "--set", "scale=big"], "expects a number"),
+        (["bench", "-l", "random", "-t", "cartpole", "--set", "scale"], "--set expects key=value"),
+        (["bench", "-l", "random", "-t", "cartpole", "--budget-seconds", "-5"], "--budget-seconds must be a positive"),
+        (["bench", "-l", "random", "-t", "cartpole", "--budget-seconds", "lots"], "expects a number of seconds"),
+        (["bench", "-l", "random", "-t", "cartpole", "--max-trials", "0"], "--max-trials must be >= 1"),
+        (["bench", "-l", "random", "-t", "cartpole", "--seed", "-1"], "--seed must be >= 0"),
+    ],
+)
+def test_bad_input_is_one_line_and_nonzero(args, message):
+    result = CliRunner().invoke(main, args)
+    assert result.exit_code == 2
+    assert message in result.output
+    assert "Traceback" not in result.output
+    assert len(result.output.strip().splitlines()) == 1
+
+
+def test_unwritable_store_is_a_one_line_error(tmp_path):
+    result = CliRunner().invoke(
+        main, ["bench", "-l", "random", "-t", "cartpole", "--max-trials", "1", "--tracking-uri", "sqlite:////nonexistent/dir/mlflow.db"]
+    )
+    assert result.exit_code == 2 and "not writable" in result.output and "Traceback" not in result.output
+
+
+def test_bench_writes_an_mlflow_run_that_reads_back(tmp_path, mlflow_uri):
+    proc = run_cli(
+        "bench", "--learner", "random", "--task", "cartpole", "--seed", "0", "--max-trials", "3",
+        "--eval-episodes", "3", "--tracking-uri", mlflow_uri, "--set", "horizon=20", cwd=tmp_path,
+    )
+    assert proc.returncode == 0, proc.stderr
+    assert "trial 3/3" in proc.stderr  # progress, a line per trial
+    import mlflow
+
+    mlflow.set_tracking_uri(mlflow_uri)
+    runs = mlflow.search_runs(experiment_names=["cartpole"], filter_string="params.learner = 'random'")
+    assert len(runs) >= 1
+    row = runs.iloc[0]
+    assert row["status"] == "FINISHED"
+    for key, value in {"learner": "random", "task": "cartpole", "seed": "0", "task.horizon": "20", "learner.scale": "1.0"}.items():
+        assert row[f"params.{key}"] == value
+    assert row["params.git_sha"] and row["params.version.torch"]
+    assert row["metrics.interaction_seconds"] == pytest.approx(3 * 20 * 0.1)
+    assert row["metrics.solved"] == 0.0 and row["tags.solved"] == "false"
+    assert "metrics.interaction_time_to_success" not in runs.columns or runs["metrics.interaction_time_to_success"].isna().all()
+    client = mlflow.MlflowClient(mlflow_uri)
+    history = client.get_metric_history(row["run_id"], "eval_success_rate")
+    assert [m.step for m in history] == [1, 2, 3]
+    artifacts = {a.path for a in client.list_artifacts(row["run_id"])}
+    assert {"policies", "episodes", "result.json"} <= artifacts
+    assert not (tmp_path / "mlruns").exists()  # artifacts live beside the store, not in the cwd
+
+
+def test_main_module_entry_point_help():
+    proc = run_cli("--help")
+    assert proc.returncode == 0 and "bench" in proc.stdout

@@ -1,0 +1,154 @@
+"""The run loop: evaluation, interaction time to success, budget, failure handling."""
+
+from __future__ import annotations
+
+import numpy as np
+import pytest
+
+from harness import runner
+from harness.errors import InvalidActionError
+from harness.interaction import Interaction
+from harness.runner import RunConfig
+from harness.testing import LearnerConformance, TaskConformance
+from harness.tracking import MemoryTracker
+from tests.harness import toy
+
+
+@pytest.fixture
+def toy_plugins(monkeypatch):
+    learners = {c.name: c for c in (toy.BadThenGood, toy.Greedy, toy.NaNLearner, toy.Crashing)}
+    monkeypatch.setattr(runner, "load_learner", lambda name: learners[name])
+    monkeypatch.setattr(runner, "load_task", lambda name: toy.ToyReach)
+
+
+def test_time_to_success_is_interaction_before_first_solved_evaluation(toy_plugins):
+    result = runner.run(RunConfig("bad-then-good", "toy-reach", seed=3, max_trials=10, eval_episodes=5))
+    assert result.solved and result.stop_reason == "solved"
+    # two useless trials (8 steps x 0.5 s each), then the solving policy is handed over after its own
+    # episode: 3 episodes = 12 s were consumed before the first solved evaluation
+    assert result.interaction_time_to_success == pytest.approx(3 * 8 * 0.5)
+    assert result.trials_to_success == 3
+    assert result.trials == 3
+
+
+def test_evaluation_steps_are_not_counted(toy_plugins):
+    few = runner.run(RunConfig("bad-then-good", "toy-reach", seed=0, max_trials=10, eval_episodes=1))
+    many = runner.run(RunConfig("bad-then-good", "toy-reach", seed=0, max_trials=10, eval_episodes=40))
+    assert few.interaction_seconds == many.interaction_seconds == 12.0
+    assert [h["interaction_seconds"] for h in few.history] == [4.0, 8.0, 12.0]
+
+
+def test_unsolved_run_has_no_time_to_success(toy_plugins):
+    result = runner.run(RunConfig("bad-then-good", "toy-reach", learner_options={"bad_trials": 5}, max_trials=2))
+    assert not result.solved
+    assert result.interaction_time_to_success is None and result.trials_to_success is None
+    assert result.stop_reason == "max trials"
+
+
+def test_budget_stops_a_learner_that_never_hands_over(toy_plugins):
+    tracker = MemoryTracker()
+    result = runner.run(RunConfig("greedy", "toy-reach", budget_seconds=10.0), tracker=tracker)
+    assert result.stop_reason == "budget" and not result.solved
+    assert result.interaction_seconds == 10.0  # 20 steps of 0.5 s, not one more
+    assert tracker.status == "FINISHED" and tracker.tags["solved"] == "false"
+    assert "interaction_time_to_success" not in tracker.metrics
+
+
+def test_interaction_refuses_steps_beyond_budget():
+    task = toy.ToyReach()
+    interaction = Interaction(task.make_env(), task.spec, budget_seconds=1.0)
+    interaction.reset()
+    interaction.step([0.0])
+    interaction.step([0.0])
+    from harness.errors import BudgetExhaustedError
+
+    with pytest.raises(BudgetExhaustedError, match="budget of 1 s"):
+        interaction.step([0.0])
+    assert interaction.steps == 2 and interaction.seconds == 1.0
+    assert len(interaction.episodes) == 1 and interaction.episodes[0].steps == 2
+
+
+def test_interaction_as_env_counts_every_step():
+    task = toy.ToyReach()
+    interaction = Interaction(task.make_env(), task.spec)
+    env = interaction.as_env()
+    env.reset()
+    for _ in range(5):
+        env.step(np.array([0.1]))
+    assert interaction.steps == 5
+
+
+def test_nan_policy_fails_the_run_with_a_clear_error(toy_plugins):
+    tracker = MemoryTracker()
+    with pytest.raises(InvalidActionError, match="NaN"):
+        runner.run(RunConfig("nan", "toy-reach", max_trials=1), tracker=tracker)
+    assert tracker.status == "FAILED"
+
+
+def test_crash_marks_run_failed_and_keeps_what_was_logged(toy_plugins):
+    tracker = MemoryTracker()
+    with pytest.raises(RuntimeError, match="boom"):
+        runner.run(RunConfig("crashing", "toy-reach", max_trials=5), tracker=tracker)
+    assert tracker.status == "FAILED"
+    assert [step for step, _ in tracker.metrics["eval_success_rate"]] == [1]
+    assert any(a == "episodes" for _, a in tracker.artifacts)
+
+
+def test_learner_metrics_are_logged_per_trial(toy_plugins):
+    tracker = MemoryTracker()
+    runner.run(RunConfig("bad-then-good", "toy-reach", max_trials=10), tracker=tracker)
+    assert tracker.metrics["J_after"] == [(1, 1.0), (2, 1.0)]
+    assert tracker.params["learner.bad_trials"] == "2"
+
+
+def test_same_seed_same_history(toy_plugins):
+    a = runner.run(RunConfig("bad-then-good", "toy-reach", seed=11, max_trials=4))
+    b = runner.run(RunConfig("bad-then-good", "toy-reach", seed=11, max_trials=4))
+    strip = lambda h: [{k: v for k, v in r.items() if k != "wall_seconds"} for r in h]
+    assert strip(a.history) == strip(b.history)
+
+
+class TestToyTaskConformance(TaskConformance):
+    task_cls = toy.ToyReach
+
+
+class TestBadThenGoodConformance(LearnerConformance):
+    learner_cls = toy.BadThenGood
+    task_name = "cartpole"
+
+
+def test_conformance_detects_a_broken_reward():
+    from harness.testing import check_task_env
+
+    class WrongReward(toy.ToyReach):
+        def make_env(self, render_mode=None):
+            env = super().make_env()
+            step = env.step
+
+            def bad_step(action):
+                obs, reward, term, trunc, info = step(action)
+                return obs, reward + 0.5, term, trunc, info
+
+            env.step = bad_step
+            return env
+
+    with pytest.raises(AssertionError, match="reward"):
+        check_task_env(WrongReward())
+
+
+def test_conformance_detects_a_learner_that_ignores_the_budget():
+    from harness.errors import BudgetExhaustedError
+    from harness.testing import check_learner
+
+    class Swallower(toy.Greedy):
+        def learn(self, interaction):
+            try:
+                while True:
+                    interaction.rollout(toy.Proportional(0.0))
+            except BudgetExhaustedError:
+                pass
+            while True:
+                yield toy.Proportional(0.0)
+
+    with pytest.raises(AssertionError):
+        check_learner(Swallower, toy.ToyReach())
