@@ -1,0 +1,168 @@
+"""Policies with exact output moments under Gaussian inputs (reference ``congp``, ``conlin``, ``gSat``).
+
+Every controller maps policy inputs ``x (p,)`` to controls ``(F,)`` and offers
+
+* ``forward(x)``: the deterministic control for a known input (``x (..., p)`` -> ``(..., F)``);
+* ``moment_map()``: a function ``(m (p,), S (p, p)) -> (M (F,), V (F, F), C (p, F))`` with
+  ``cov[x, u] = S @ C`` for ``x ~ N(m, S)``. Parameter-only work (e.g. the RBF weights) is done
+  once when the map is built, so build it once per policy evaluation, not once per time step.
+
+Controllers are ``torch.nn.Module``s whose ``parameters()`` are exactly the policy parameters theta.
+"""
+
+from __future__ import annotations
+
+import math
+from collections.abc import Callable
+
+import torch
+from torch import nn
+
+from plugins.pilco.kernels import cholesky, se_ard
+from plugins.pilco.moments import MomentMatchingGP
+from plugins.pilco.posterior import GPPosterior
+from plugins.pilco.trig import SQUASH_KINDS, squash, squash_maps, squash_moments
+
+MomentMap = Callable[[torch.Tensor, torch.Tensor], tuple[torch.Tensor, torch.Tensor, torch.Tensor]]
+
+#: fixed RBF-policy signal standard deviation and noise standard deviation (reference congp)
+RBF_SIGNAL_STD = 1.0
+RBF_NOISE_STD = 0.01
+
+
+class RBFController(nn.Module):
+    """RBF network = mean of a GP on pseudo-data (reference ``congp``), one GP per control.
+
+    ``z_a(x) = sum_i beta_ai exp(-1/2 (x - c_i)^T Lambda_a^-1 (x - c_i))`` with
+    ``beta_a = (K_a + 0.01^2 I)^-1 t_a``, ``K_a`` the SE-ARD Gram matrix of the centres with signal
+    variance fixed to 1. Output moments are the GP-mean moments (``mean_only``, reference ``gp2``).
+
+    Parameters (theta): ``centres (n_c, p)``, ``targets (n_c, F)``, ``log_ell (F, p)``;
+    count ``n_c p + n_c F + F p`` (305 for 50 centres, 5 inputs, 1 control: the paper's R^305).
+    """
+
+    def __init__(self, centres: torch.Tensor, targets: torch.Tensor, log_ell: torch.Tensor) -> None:
+        super().__init__()
+        if centres.ndim != 2 or targets.ndim != 2 or targets.shape[0] != centres.shape[0]:
+            raise ValueError("centres must be (n_c, p) and targets (n_c, F)")
+        if log_ell.shape != (targets.shape[1], centres.shape[1]):
+            raise ValueError(f"log_ell must have shape (F, p) = {(targets.shape[1], centres.shape[1])}")
+        self.centres = nn.Parameter(centres.detach().clone().to(torch.float64))
+        self.targets = nn.Parameter(targets.detach().clone().to(torch.float64))
+        self.log_ell = nn.Parameter(log_ell.detach().clone().to(torch.float64))
+
+    @classmethod
+    def initial(
+        cls,
+        input_mean: torch.Tensor,
+        input_cov: torch.Tensor,
+        num_centres: int,
+        num_controls: int,
+        length_scales: torch.Tensor,
+        generator: torch.Generator | None = None,
+    ) -> RBFController:
+        """Reference initialisation: centres ~ N(input_mean, input_cov), targets = 0.1 randn,
+        length-scales ``(p,)`` (shared by all controls) or ``(F, p)``."""
+        p = input_mean.shape[0]
+        chol = torch.linalg.cholesky(input_cov.to(torch.float64) + 1e-12 * torch.eye(p, dtype=torch.float64))
+        eps = torch.randn(num_centres, p, generator=generator, dtype=torch.float64)
+        centres = input_mean.to(torch.float64) + eps @ chol.T
+        targets = 0.1 * torch.randn(num_centres, num_controls, generator=generator, dtype=torch.float64)
+        log_ell = torch.log(torch.as_tensor(length_scales, dtype=torch.float64)).expand(num_controls, p)
+        return cls(centres, targets, log_ell)
+
+    @property
+    def num_controls(self) -> int:
+        return int(self.targets.shape[1])
+
+    def posterior(self) -> GPPosterior:
+        """The pseudo-data GP as a :class:`GPPosterior` (inputs = centres)."""
+        f = self.num_controls
+        log_alpha = torch.full((f,), math.log(RBF_SIGNAL_STD), dtype=torch.float64)
+        log_sigma = torch.full((f,), math.log(RBF_NOISE_STD), dtype=torch.float64)
+        gram = se_ard(self.centres, self.centres, self.log_ell, log_alpha)  # (F, n_c, n_c)
+        gram = gram + RBF_NOISE_STD**2 * torch.eye(self.centres.shape[0], dtype=torch.float64)
+        chol = cholesky(gram, "RBF policy Gram matrix")
+        beta = torch.cholesky_solve(self.targets.T[..., None], chol).squeeze(-1)  # (F, n_c)
+        return GPPosterior(self.centres, beta, torch.cholesky_inverse(chol), self.log_ell, log_alpha, log_sigma)
+
+    def forward(self, x: torch.Tensor) -> torch.Tensor:
+        post = self.posterior()
+        k = se_ard(x.reshape(-1, x.shape[-1]), post.inputs, post.log_ell, post.log_alpha)  # (F, N, n_c)
+        z = torch.einsum("anm,am->na", k, post.beta)
+        return z.reshape(*x.shape[:-1], self.num_controls)
+
+    def moment_map(self) -> MomentMap:
+        gp = MomentMatchingGP(self.posterior())
+        return lambda m, S: gp.predict(m, S, mean_only=True)
+
+
+class LinearController(nn.Module):
+    """Linear policy ``u = W x + b`` (reference ``conlin``): M = W m + b, V = W S W^T, C = W^T.
+
+    Parameters (theta): ``weight (F, p)``, ``bias (F,)``.
+    """
+
+    def __init__(self, weight: torch.Tensor, bias: torch.Tensor) -> None:
+        super().__init__()
+        if weight.ndim != 2 or bias.shape != (weight.shape[0],):
+            raise ValueError("weight must be (F, p) and bias (F,)")
+        self.weight = nn.Parameter(weight.detach().clone().to(torch.float64))
+        self.bias = nn.Parameter(bias.detach().clone().to(torch.float64))
+
+    @classmethod
+    def initial(cls, num_inputs: int, num_controls: int, scale: float = 0.1, generator: torch.Generator | None = None) -> LinearController:
+        """Random weights ``scale * randn``, zero bias."""
+        weight = scale * torch.randn(num_controls, num_inputs, generator=generator, dtype=torch.float64)
+        return cls(weight, torch.zeros(num_controls, dtype=torch.float64))
+
+    @property
+    def num_controls(self) -> int:
+        return int(self.weight.shape[0])
+
+    def forward(self, x: torch.Tensor) -> torch.Tensor:
+        return x @ self.weight.T + self.bias
+
+    def moment_map(self) -> MomentMap:
+        W, b = self.weight, self.bias
+        return lambda m, S: (W @ m + b, W @ S @ W.T, W.T)
+
+
+class SquashedController(nn.Module):
+    """A controller followed by squashing to ``[-u_max, u_max]`` (reference ``conCat`` + ``gSat``).
+
+    ``kind``: ``"trapezoid"`` (``u_max (9 sin z + sin 3z)/8``), ``"sin"`` (``u_max sin z``) or
+    ``None`` (no squashing). Cross-covariances chain: ``C = C_base @ C_squash``.
+    """
+
+    def __init__(self, base: nn.Module, u_max, kind: str | None = "trapezoid") -> None:
+        super().__init__()
+        if kind is not None and kind not in SQUASH_KINDS:
+            raise ValueError(f"unknown squashing {kind!r}; expected one of {SQUASH_KINDS} or None")
+        self.base = base
+        self.kind = kind
+        self.register_buffer("u_max", torch.as_tensor(u_max, dtype=torch.float64).reshape(-1).clone())
+        if self.u_max.shape[0] != base.num_controls:
+            raise ValueError(f"u_max has {self.u_max.shape[0]} entries for {base.num_controls} controls")
+
+    @property
+    def num_controls(self) -> int:
+        return self.base.num_controls
+
+    def forward(self, x: torch.Tensor) -> torch.Tensor:
+        z = self.base(x)
+        return z if self.kind is None else squash(z, self.u_max, self.kind)
+
+    def moment_map(self) -> MomentMap:
+        base_map = self.base.moment_map()
+        if self.kind is None:
+            return base_map
+        u_max, kind = self.u_max, self.kind
+        maps = squash_maps(u_max, kind)
+
+        def moments(m: torch.Tensor, S: torch.Tensor):
+            mz, sz, cz = base_map(m, S)
+            mu, su, cu = squash_moments(mz, sz, u_max, kind, maps)
+            return mu, su, cz @ cu
+
+        return moments
