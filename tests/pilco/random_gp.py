@@ -80,3 +80,22 @@ def mc_moments(samples_f: torch.Tensor, samples_x: torch.Tensor, extra_var: torc
         cov_se = cov_se + torch.diag(extra_var.std(0) / n**0.5)
     cprod = xc[:, :, None] * fc[:, None, :]
     return mean, mean_se, cov, cov_se, cprod.mean(0), cprod.std(0) / n**0.5
+
+
+def pendulum_posterior(num_points: int, gen: torch.Generator) -> GPPosterior:
+    """A GP of a damped, driven pendulum's one-step differences (state [thetadot, theta], dt 0.1).
+
+    GP inputs ``[thetadot, sin(theta), cos(theta), u]`` (``StateLayout.with_trig(2, [1])`` plus one
+    control), outputs ``Delta = [Delta thetadot, Delta theta]``; fixed sensible hyperparameters.
+    """
+    thd = 6.0 * torch.rand(num_points, generator=gen, dtype=DT) - 3.0
+    th = 2 * torch.pi * torch.rand(num_points, generator=gen, dtype=DT) - torch.pi
+    u = 4.0 * torch.rand(num_points, generator=gen, dtype=DT) - 2.0
+    dt = 0.1
+    acc = -9.81 * torch.sin(th) - 0.5 * thd + u
+    Y = torch.stack([dt * acc, dt * thd + 0.5 * dt**2 * acc], dim=1)
+    X = torch.stack([thd, torch.sin(th), torch.cos(th), u], dim=1)
+    log_ell = torch.log(torch.tensor([[3.0, 1.0, 1.0, 3.0], [3.0, 1.5, 1.5, 4.0]], dtype=DT))
+    log_alpha = torch.log(Y.std(0))
+    log_sigma = torch.log(torch.tensor([0.01, 0.01], dtype=DT))
+    return posterior_from_data(X, Y, log_ell, log_alpha, log_sigma)
