@@ -1,0 +1,103 @@
+"""The policy objective J(theta) = sum_{t=1..H} E[c(x_t)] and its gradient (reference ``value.m``).
+
+``x_0 ~ N(mu0, Sigma0)`` is not costed (gamma = 1, as in all reference scenarios). J is a closed-form
+function of theta (moment matching all the way), so ``torch.autograd`` gives its exact gradient
+(paper eqs. 26-30 are the chain rule autograd carries out).
+
+:class:`PolicyObjective` also adapts J to ``scipy.optimize.minimize(..., jac=True)``: it packs the
+controller parameters into one flat float64 vector (in ``controller.parameters()`` order) and
+evaluates ``vector -> (J, dJ/dtheta)`` with the dynamics posterior detached.
+"""
+
+from __future__ import annotations
+
+import numpy as np
+import torch
+
+from harness.task import SaturatingCost
+from plugins.pilco.cost import CostMoments
+from plugins.pilco.posterior import GPPosterior
+from plugins.pilco.propagate import StateLayout, rollout
+
+
+class PolicyObjective:
+    """J(theta) for one dynamics model, controller, cost and initial distribution.
+
+    Args:
+        controller: a controller module (e.g. ``SquashedController``); its parameters are theta.
+        posterior: the dynamics GP (``E = D`` outputs, inputs ``[a[model_inputs], u]``); detached.
+        layout: the :class:`StateLayout`.
+        cost: the task's saturating cost (``width`` overrides its width if given).
+        init_mean, init_cov: ``(D,)``, ``(D, D)``.
+        horizon: number of predicted (and costed) steps H.
+        mean_only: deterministic-GP-mean ablation (see :func:`~plugins.pilco.moments.predict_uncertain`).
+    """
+
+    def __init__(
+        self,
+        controller: torch.nn.Module,
+        posterior: GPPosterior,
+        layout: StateLayout,
+        cost: SaturatingCost,
+        init_mean,
+        init_cov,
+        horizon: int,
+        mean_only: bool = False,
+        width: float | None = None,
+    ) -> None:
+        self.controller = controller
+        self.posterior = posterior.detach()
+        self.layout = layout
+        self.cost = CostMoments(cost, width)
+        self.init_mean = torch.as_tensor(np.asarray(init_mean, dtype=np.float64))
+        self.init_cov = torch.as_tensor(np.asarray(init_cov, dtype=np.float64))
+        self.horizon = int(horizon)
+        self.mean_only = bool(mean_only)
+        self.params = [p for p in controller.parameters() if p.requires_grad]
+        self.num_params = sum(p.numel() for p in self.params)
+
+    # ---- closed form ----------------------------------------------------------------------------
+    def state_distributions(self) -> tuple[torch.Tensor, torch.Tensor]:
+        """Predicted ``means (H+1, D)``, ``covs (H+1, D, D)`` (index 0 = initial)."""
+        return rollout(self.init_mean, self.init_cov, self.horizon, self.posterior, self.controller, self.layout, self.mean_only)
+
+    def step_costs(self) -> tuple[torch.Tensor, torch.Tensor]:
+        """Expected cost and its variance for ``x_1 .. x_H``: two ``(H,)`` tensors."""
+        means, covs = self.state_distributions()
+        return self.cost(means[1:], covs[1:])
+
+    def value(self) -> torch.Tensor:
+        """J(theta) as a differentiable scalar tensor."""
+        return self.step_costs()[0].sum()
+
+    def predicted_costs(self) -> tuple[np.ndarray, np.ndarray]:
+        """Predicted per-step cost mean and standard deviation for t = 1..H (numpy ``(H,)`` each)."""
+        with torch.no_grad():
+            mean, var = self.step_costs()
+        return mean.numpy().copy(), var.sqrt().numpy().copy()
+
+    # ---- flat-vector interface for scipy ---------------------------------------------------------
+    def get_flat(self) -> np.ndarray:
+        """theta as a flat float64 vector (``controller.parameters()`` order)."""
+        return torch.cat([p.detach().reshape(-1) for p in self.params]).numpy().copy()
+
+    def set_flat(self, theta: np.ndarray) -> None:
+        """Write a flat vector back into the controller parameters."""
+        theta = np.asarray(theta, dtype=np.float64).reshape(-1)
+        if theta.shape[0] != self.num_params:
+            raise ValueError(f"theta has {theta.shape[0]} entries; the controller has {self.num_params} parameters")
+        offset = 0
+        with torch.no_grad():
+            for p in self.params:
+                n = p.numel()
+                p.copy_(torch.from_numpy(theta[offset : offset + n]).reshape(p.shape))
+                offset += n
+
+    def value_and_grad(self, theta: np.ndarray) -> tuple[float, np.ndarray]:
+        """``(J, dJ/dtheta)`` at ``theta`` (the controller keeps ``theta`` afterwards)."""
+        self.set_flat(theta)
+        J = self.value()
+        grads = torch.autograd.grad(J, self.params)
+        return float(J.detach()), torch.cat([g.reshape(-1) for g in grads]).numpy().copy()
+
+    __call__ = value_and_grad
