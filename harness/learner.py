@@ -80,6 +80,11 @@ class Learner(ABC):
     def option_set(cls) -> OptionSet:
         return OptionSet(cls.options, f"learner '{cls.name}'")
 
+    @classmethod
+    def default_limits(cls, spec: TaskSpec) -> tuple[int | None, float | None]:
+        """``(max_trials, budget_seconds)`` used when the user sets neither (may depend on the task)."""
+        return cls.default_max_trials, cls.default_budget_seconds
+
     @abstractmethod
     def learn(self, interaction: Interaction) -> Iterator[Policy]:
         """Act through ``interaction`` and yield a policy at every hand-over."""

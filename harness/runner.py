@@ -115,7 +115,7 @@ def prepare(config: RunConfig) -> Prepared:
     learner_options = learner_cls.option_set().resolve(config.learner_options)
     max_trials, budget = config.max_trials, config.budget_seconds
     if max_trials is None and budget is None:
-        max_trials, budget = learner_cls.default_max_trials, learner_cls.default_budget_seconds
+        max_trials, budget = learner_cls.default_limits(task.spec)
     return Prepared(config, task, learner_cls, learner_options, max_trials, budget)
 
 

@@ -1,0 +1,294 @@
+"""PILCO as a harness learner (paper Algorithm 1), and the deterministic-GP-mean ablation.
+
+    init: J random rollouts (uniform controls in the bounds)                  -> interaction
+    repeat:
+        learn the GP dynamics model on all data (FITC above a threshold)      -> gp.GPModel
+        policy search: L-BFGS on J(theta) = sum_t E[c(x_t)] from N(mu0, S0)   -> objective, policy_search
+        hand the policy over (the harness evaluates it here)                  -> yield
+        apply it for one trial and record the data                            -> interaction
+    until the harness stops it (solved, trial limit, budget)
+
+``pilco-mean`` is the same learner with ``mean_only = True``: the dynamics GP's model-uncertainty
+term (alpha^2 - tr((K + sigma^2 I)^-1 Q), paper eq. 23) is dropped, everything else equal (paper
+§4: "we used the posterior mean function of a GP").
+
+Per-task defaults (controller, size, initial rollouts, sparse threshold, ...) are *presets* keyed
+by task name (reference ``settings_*.m``); every entry can be overridden with ``--set``. A task
+without a preset gets the generic one (RBF policy, sin/cos of the spec's angles).
+"""
+
+from __future__ import annotations
+
+import copy
+import json
+import shutil
+import tempfile
+import time
+from collections.abc import Iterator
+from dataclasses import dataclass, replace
+from pathlib import Path
+from typing import Any, ClassVar
+
+import numpy as np
+import torch
+
+from harness.errors import NumericalError
+from harness.interaction import Interaction
+from harness.learner import Learner, Policy
+from harness.options import Option
+from harness.task import Episode, TaskSpec
+from plugins.pilco.controllers import LinearController, RBFController, SquashedController
+from plugins.pilco.gp import GPModel
+from plugins.pilco.objective import PolicyObjective
+from plugins.pilco.policy_search import optimise_policy
+from plugins.pilco.propagate import StateLayout, act
+
+
+@dataclass(frozen=True)
+class Preset:
+    """Per-task PILCO settings (reference ``settings_*.m`` unless noted).
+
+    ``model_exclude``/``policy_exclude``: augmented-state indices hidden from the GP / policy
+    (the raw angles are always replaced by their sin/cos).
+    """
+
+    controller: str = "rbf"
+    num_centres: int = 50
+    initial_rollouts: int = 1
+    random_scale: float = 1.0
+    sparse_threshold: int = 300
+    max_trials: int = 15
+    model_exclude: tuple[int, ...] = ()
+    policy_exclude: tuple[int, ...] = ()
+
+
+PRESETS: dict[str, Preset] = {
+    # settings_cp.m; 50 centres as the paper's R^305 policy (V0.9 code: 10)
+    "cartpole": Preset(controller="rbf", num_centres=50, initial_rollouts=1, sparse_threshold=300, max_trials=15),
+    # settings_cdp.m: 200 centres, FITC with 400 pseudo-inputs, 40 policy iterations
+    "double-pendulum": Preset(controller="rbf", num_centres=200, initial_rollouts=1, sparse_threshold=400, max_trials=40),
+    # settings_unicycle.m: linear policy, 10 random rollouts at u_max/5; the GP does not see the yaw
+    # (dyni drops phi, observation index 8); the policy sees all 10 states
+    "unicycle": Preset(controller="linear", initial_rollouts=10, random_scale=0.2, sparse_threshold=300, max_trials=40, model_exclude=(8,)),
+    # dm_control: the observation already carries cos/sin of the pole angle
+    "dmc-cartpole": Preset(controller="rbf", num_centres=50, initial_rollouts=1, sparse_threshold=300, max_trials=15),
+}
+GENERIC = Preset()
+
+
+def layout_for(spec: TaskSpec, preset: Preset) -> StateLayout:
+    """The task's state layout: sin/cos for every angle, minus the preset's exclusions."""
+    base = StateLayout.with_trig(spec.state_dim, spec.angle_indices)
+    model = tuple(i for i in base.model_inputs if i not in preset.model_exclude)
+    policy = tuple(i for i in base.policy_inputs if i not in preset.policy_exclude)
+    return StateLayout(spec.state_dim, spec.angle_indices, model, policy)
+
+
+def transitions(episodes: tuple[Episode, ...] | list[Episode], layout: StateLayout) -> tuple[np.ndarray, np.ndarray]:
+    """GP training data from recorded (noisy) observations.
+
+    Inputs ``[a(x_t)[model_inputs], u_t]`` ``(n, q + F)``; targets ``x_{t+1} - x_t`` ``(n, D)``.
+    The last transition of a terminated episode (it left the allowed region, e.g. the unicycle
+    fell) is dropped, as the reference ``rollout`` does.
+    """
+    xs, us, ys = [], [], []
+    for ep in episodes:
+        steps = ep.steps - (1 if ep.terminated else 0)
+        if steps <= 0:
+            continue
+        xs.append(ep.observations[:steps])
+        us.append(ep.actions[:steps])
+        ys.append(ep.observations[1 : steps + 1] - ep.observations[:steps])
+    x = torch.as_tensor(np.concatenate(xs), dtype=torch.float64)
+    with torch.no_grad():
+        inputs = layout.augment(x)[:, layout.model_index]
+    return np.concatenate([inputs.numpy(), np.concatenate(us)], axis=1), np.concatenate(ys)
+
+
+class PilcoPolicy:
+    """The learned controller applied to an observation: augment, controller, squash -> ``(F,)``."""
+
+    def __init__(self, controller: torch.nn.Module, layout: StateLayout) -> None:
+        self.controller = controller
+        self.layout = layout
+
+    def __call__(self, observation: np.ndarray) -> np.ndarray:
+        return act(observation, self.controller, self.layout)
+
+
+def _initial_policy_input_moments(spec: TaskSpec, layout: StateLayout) -> tuple[torch.Tensor, torch.Tensor]:
+    """Moments of the policy inputs under N(mu0, Sigma0) (for placing the RBF centres)."""
+    from plugins.pilco.trig import augment_trig
+
+    m = torch.as_tensor(spec.init_mean, dtype=torch.float64)
+    S = torch.as_tensor(spec.init_cov, dtype=torch.float64)
+    ma, sa = augment_trig(m, S, layout.angle_map)
+    idx = layout.policy_index
+    return ma[idx], sa[idx[:, None], idx[None, :]]
+
+
+def _initial_length_scales(layout: StateLayout) -> torch.Tensor:
+    """Reference initial policy length-scales: 1 for plain states, 0.7 for sin/cos entries."""
+    return torch.tensor([0.7 if i >= layout.state_dim else 1.0 for i in layout.policy_inputs], dtype=torch.float64)
+
+
+class Pilco(Learner):
+    """PILCO (Deisenroth & Rasmussen 2011): GP dynamics, moment matching, analytic policy gradients."""
+
+    name = "pilco"
+    description = "PILCO: GP dynamics model, exact moment matching, analytic policy gradients (ICML 2011)"
+    #: the ablation switch: drop the GP's model-uncertainty term in planning
+    mean_only: ClassVar[bool] = False
+    options = (
+        Option("controller", str, None, "policy: rbf or linear (default: task preset)", choices=(None, "rbf", "linear")),
+        Option("num_centres", int, None, "RBF centres (default: task preset)", low=1),
+        Option("squash", str, "trapezoid", "squashing to the bounds", choices=("trapezoid", "sin")),
+        Option("initial_rollouts", int, None, "random rollouts before learning (default: task preset)", low=1),
+        Option("random_scale", float, None, "random controls in scale * bounds (default: task preset)", low=0.0, high=1.0),
+        Option("planning_horizon", int, None, "predicted steps in J (default: the task horizon)", low=1),
+        Option("cost_width", float, None, "cost width used in planning (default: the task's)", low=1e-6),
+        Option("sparse_threshold", int, None, "FITC above this many data points (default: task preset)", low=1),
+        Option("num_pseudo", int, None, "FITC pseudo-inputs (default: the sparse threshold)", low=1),
+        Option("gp_max_evals", int, 300, "GP hyperparameter L-BFGS evaluations per trial", low=0),
+        Option("gp_restarts", int, 0, "extra GP training runs from perturbed starts (best kept)", low=0),
+        Option("policy_max_iterations", int, 150, "L-BFGS iterations (~line searches) per policy search", low=1),
+        Option("policy_max_evaluations", int, 300, "J+dJ evaluations per policy search", low=1),
+        Option("threads", int, 1, "torch threads (1 when several runs share the machine)", low=1),
+        Option("plots", bool, True, "save the predicted-vs-realised cost plot per trial"),
+    )
+
+    def __init__(self, spec: TaskSpec, options: dict[str, Any] | None = None, seed: int = 0) -> None:
+        super().__init__(spec, options, seed)
+        o = self.options
+        preset = PRESETS.get(spec.name, GENERIC)
+        self.preset = replace(
+            preset,
+            controller=o["controller"] or preset.controller,
+            num_centres=o["num_centres"] or preset.num_centres,
+            initial_rollouts=o["initial_rollouts"] or preset.initial_rollouts,
+            random_scale=preset.random_scale if o["random_scale"] is None else o["random_scale"],
+            sparse_threshold=o["sparse_threshold"] or preset.sparse_threshold,
+        )
+        self.layout = layout_for(spec, self.preset)
+        self.horizon = o["planning_horizon"] or spec.horizon
+        self.num_pseudo = o["num_pseudo"] or self.preset.sparse_threshold
+
+    @classmethod
+    def default_limits(cls, spec: TaskSpec) -> tuple[int | None, float | None]:
+        """The task preset's number of trials (reference N), no time budget."""
+        return PRESETS.get(spec.name, GENERIC).max_trials, None
+
+    # ---- pieces --------------------------------------------------------------------------------
+    def _new_controller(self, generator: torch.Generator) -> SquashedController:
+        spec, layout = self.spec, self.layout
+        if not np.allclose(spec.action_low, -spec.action_high):
+            raise ValueError(f"PILCO's squashing needs symmetric control bounds; {spec.name} has {spec.action_low}..{spec.action_high}")
+        p, f = len(layout.policy_inputs), spec.action_dim
+        if self.preset.controller == "linear":
+            base = LinearController.initial(p, f, scale=0.01, generator=generator)
+        else:
+            mean, cov = _initial_policy_input_moments(spec, layout)
+            base = RBFController.initial(mean, cov, self.preset.num_centres, f, _initial_length_scales(layout), generator=generator)
+        return SquashedController(base, spec.action_high, self.options["squash"])
+
+    def _plot_prediction(self, predicted: tuple[np.ndarray, np.ndarray], episode: Episode, path: Path, trial: int) -> Path:
+        import matplotlib
+
+        matplotlib.use("Agg")
+        import matplotlib.pyplot as plt
+
+        mean, std = predicted
+        t_pred = np.arange(1, mean.shape[0] + 1) * self.spec.dt
+        t_real = np.arange(1, episode.steps + 1) * self.spec.dt
+        fig, ax = plt.subplots(figsize=(6, 3.2), dpi=110)
+        ax.fill_between(t_pred, mean - 2 * std, mean + 2 * std, color="tab:blue", alpha=0.25, label="predicted ±2σ")
+        ax.plot(t_pred, mean, color="tab:blue", label="predicted E[cost]")
+        ax.plot(t_real, episode.costs, "o-", color="tab:red", ms=3, label="realised cost (trial)")
+        ax.set(xlabel="time [s]", ylabel="cost", ylim=(-0.05, 1.05), title=f"{self.name} on {self.spec.name}: trial {trial}")
+        ax.legend(loc="lower left", fontsize=8)
+        fig.tight_layout()
+        fig.savefig(path)
+        plt.close(fig)
+        return path
+
+    # ---- Algorithm 1 ---------------------------------------------------------------------------
+    def learn(self, interaction: Interaction) -> Iterator[Policy]:
+        from plugins.random_learner import UniformRandomPolicy
+
+        torch.set_num_threads(self.options["threads"])
+        spec, o = self.spec, self.options
+        generator = torch.Generator().manual_seed(self.seed)
+        workdir = Path(tempfile.mkdtemp(prefix="pilco-"))
+        try:
+            scale = self.preset.random_scale
+            explore = UniformRandomPolicy(scale * spec.action_low, scale * spec.action_high, self.seed)
+            for _ in range(self.preset.initial_rollouts):
+                interaction.rollout(explore)
+
+            controller = self._new_controller(generator)
+            model = GPModel(sparse_threshold=self.preset.sparse_threshold, num_pseudo=self.num_pseudo, max_evals_full=o["gp_max_evals"])
+            hyperparameters = None
+            trial = 0
+            while True:
+                trial += 1
+                x, y = transitions(interaction.episodes, self.layout)
+                fit = model.fit(x, y, warm_start=hyperparameters, restarts=o["gp_restarts"], seed=self.seed + trial)
+                hyperparameters = model.hyperparameters
+
+                objective = PolicyObjective(
+                    controller, model.posterior(), self.layout, spec.cost, spec.init_mean, spec.init_cov,
+                    self.horizon, mean_only=self.mean_only, width=o["cost_width"],
+                )
+                previous = objective.get_flat()
+                try:
+                    search = optimise_policy(objective, o["policy_max_iterations"], o["policy_max_evaluations"])
+                    failed = 0.0
+                except NumericalError:
+                    objective.set_flat(previous)  # keep the previous policy, say so in the metrics
+                    search, failed = None, 1.0
+                predicted = objective.predicted_costs()
+
+                self.metrics = {
+                    "n_data": float(fit.n_points),
+                    "gp_sparse": float(fit.sparse),
+                    "gp_nll": fit.nll,
+                    "model_train_seconds": fit.seconds,
+                    "policy_search_failed": failed,
+                    "predicted_cost": float(predicted[0].sum()),
+                    "policy_parameters": float(objective.num_params),
+                }
+                if search is not None:
+                    self.metrics.update(
+                        J_before=search.J_before, J_after=search.J_after, policy_opt_seconds=search.seconds,
+                        policy_evaluations=float(search.evaluations), line_searches=float(search.iterations),
+                        policy_failed_evaluations=float(search.failed_evaluations),
+                    )
+                h = fit.hyperparameters
+                for a in range(spec.state_dim):
+                    self.metrics[f"gp_signal_std_{a}"] = float(torch.exp(h.log_alpha[a]))
+                    self.metrics[f"gp_noise_std_{a}"] = float(torch.exp(h.log_sigma[a]))
+                model_path = workdir / f"model_trial{trial:03d}.pt"
+                torch.save({"gp": model.state_dict(), "layout": self.layout, "preset": self.preset}, model_path)
+                hyp_path = workdir / f"gp_hyperparameters_trial{trial:03d}.json"
+                hyp_path.write_text(json.dumps({"length_scales": torch.exp(h.log_ell).tolist(),
+                                                "signal_std": torch.exp(h.log_alpha).tolist(),
+                                                "noise_std": torch.exp(h.log_sigma).tolist(),
+                                                "sparse": fit.sparse, "n_points": fit.n_points}, indent=1))
+                self.artifacts += [model_path, hyp_path]
+
+                policy = PilcoPolicy(copy.deepcopy(controller), self.layout)
+                yield policy
+
+                episode = interaction.rollout(policy)
+                if o["plots"]:
+                    self.artifacts.append(self._plot_prediction(predicted, episode, workdir / f"prediction_trial{trial:03d}.png", trial))
+        finally:
+            shutil.rmtree(workdir, ignore_errors=True)
+
+
+class PilcoMean(Pilco):
+    """Ablation: PILCO planning with the GP posterior mean only (model uncertainty dropped)."""
+
+    name = "pilco-mean"
+    description = "PILCO ablation: deterministic GP posterior mean in planning (no model uncertainty)"
+    mean_only = True

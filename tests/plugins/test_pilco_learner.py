@@ -1,0 +1,62 @@
+"""Smoke test of the PILCO learner end to end (the full learning runs are benchmarks, not CI)."""
+
+from __future__ import annotations
+
+import numpy as np
+import pytest
+import torch
+
+from harness.discovery import load_learner
+from harness.runner import RunConfig, run
+from harness.testing import LearnerConformance
+from harness.tracking import MemoryTracker
+from plugins.pilco.learner import Pilco, PilcoMean, layout_for, transitions, PRESETS
+
+TINY = {"num_centres": "5", "policy_max_evaluations": "15", "gp_max_evals": "40", "plots": "true"}
+
+
+def test_pilco_smoke_on_short_cartpole():
+    tracker = MemoryTracker()
+    result = run(
+        RunConfig("pilco", "cartpole", seed=0, learner_options=TINY, task_options={"horizon": 15}, max_trials=2, eval_episodes=2),
+        tracker=tracker,
+    )
+    assert result.trials == 2 and result.interaction_seconds == pytest.approx(2 * 15 * 0.1)
+    for step in (1, 2):
+        before = dict(tracker.metrics["J_before"])[step]
+        after = dict(tracker.metrics["J_after"])[step]
+        assert after <= before  # policy search never ends worse than it started
+    assert dict(tracker.metrics["J_after"])[1] < dict(tracker.metrics["J_before"])[1]
+    for key in ("n_data", "model_train_seconds", "policy_opt_seconds", "line_searches", "predicted_cost", "gp_noise_std_0"):
+        assert key in tracker.metrics, key
+    assert dict(tracker.metrics["n_data"]) == {1: 15.0, 2: 30.0}
+    assert dict(tracker.metrics["policy_parameters"])[1] == 5 * 5 + 5 + 5  # n_c p + n_c F + F p
+    names = {p.name for p, _ in tracker.artifacts}
+    assert {"model_trial001.pt", "gp_hyperparameters_trial001.json", "prediction_trial001.png"} <= names
+    assert tracker.status == "FINISHED"
+
+
+def test_entry_points_and_ablation_flag():
+    assert load_learner("pilco") is Pilco and load_learner("pilco-mean") is PilcoMean
+    assert not Pilco.mean_only and PilcoMean.mean_only
+    assert PilcoMean.options == Pilco.options  # everything else equal
+
+
+def test_transitions_drop_the_step_that_left_the_region():
+    from harness.task import Episode
+
+    spec = __import__("tasks.cartpole", fromlist=["CartPole"]).CartPole().spec
+    layout = layout_for(spec, PRESETS["cartpole"])
+    obs = np.arange(5 * 4, dtype=float).reshape(5, 4) / 10
+    ep = Episode(obs, obs, np.ones((4, 1)), np.zeros(4), terminated=True)
+    x, y = transitions([ep], layout)
+    assert x.shape == (3, 6) and y.shape == (3, 4)
+    assert np.allclose(y, 0.4)  # x_{t+1} - x_t
+    assert np.allclose(x[0, :3], obs[0, :3]) and np.allclose(x[0, 3:5], [np.sin(0.3), np.cos(0.3)]) and x[0, 5] == 1.0
+
+
+class TestPilcoConformance(LearnerConformance):
+    learner_cls = Pilco
+    task_name = "cartpole"
+    task_options = {"horizon": 10}
+    learner_options = {"num_centres": 3, "policy_max_evaluations": 3, "gp_max_evals": 10, "plots": False}
