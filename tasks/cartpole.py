@@ -23,7 +23,7 @@ import numpy as np
 from harness.options import Option
 from harness.task import Episode, SaturatingCost, Task, TaskSpec
 from tasks.drawing import Canvas
-from tasks.simulation import OdeEnv
+from tasks.simulation import OdeEnv, RightHandSide
 
 
 
@@ -38,16 +38,33 @@ class CartPoleParams:
     gravity: float = 9.82  # g, m/s^2
 
 
-def cartpole_rhs(z: Sequence[float], u: Sequence[float], p: CartPoleParams) -> tuple[float, float, float, float]:
-    """dz/dt for ``z = [x, xdot, thetadot, theta]`` and force ``u = [f]`` (N)."""
-    _, xd, thd, th = z
-    f = u[0]
-    big_m, m, l, b, g = p.cart_mass, p.pole_mass, p.pole_length, p.friction, p.gravity
-    s, c = math.sin(th), math.cos(th)
-    den = 4.0 * (big_m + m) - 3.0 * m * c * c
-    xdd = (2.0 * m * l * thd * thd * s + 3.0 * m * g * s * c + 4.0 * f - 4.0 * b * xd) / den
-    thdd = (-3.0 * m * l * thd * thd * s * c - 6.0 * (big_m + m) * g * s - 6.0 * (f - b * xd) * c) / (l * den)
-    return xd, xdd, thdd, thd
+def cartpole_rhs(params: CartPoleParams) -> RightHandSide:
+    """The right-hand side ``f(z, u) -> dz/dt`` for ``z = [x, xdot, thetadot, theta]``, force ``u = [f]`` (N).
+
+    Returns a closure over the parameters (constants folded once: the env calls it ~100 times per
+    control step, see :mod:`tasks.simulation`).
+    """
+    big_m, m, l, b, g = params.cart_mass, params.pole_mass, params.pole_length, params.friction, params.gravity
+    k_den, k_cos2 = 4.0 * (big_m + m), 3.0 * m
+    k_x_w2, k_x_g = 2.0 * m * l, 3.0 * m * g
+    k_t_w2, k_t_g = -3.0 * m * l, -6.0 * (big_m + m) * g
+    sin, cos = math.sin, math.cos
+
+    def rhs(z: Sequence[float], u: Sequence[float]) -> tuple[float, float, float, float]:
+        _, xd, thd, th = z
+        f = u[0]
+        s, c = sin(th), cos(th)
+        den = k_den - k_cos2 * c * c
+        fb = f - b * xd
+        thd2s = thd * thd * s
+        return (
+            xd,
+            (k_x_w2 * thd2s + k_x_g * s * c + 4.0 * fb) / den,
+            (k_t_w2 * thd2s * c + k_t_g * s - 6.0 * fb * c) / (l * den),
+            thd,
+        )
+
+    return rhs
 
 
 def cartpole_energy(z: Sequence[float], p: CartPoleParams) -> float:
@@ -85,7 +102,7 @@ class CartPole(Task):
         Option("horizon", int, 40, "control steps per episode (dt = 0.1 s)", low=10),
         Option("measurement_noise", float, 0.01, "std of the Gaussian noise on every observed state entry", low=0.0),
         Option("cost_width", float, 0.25, "width sigma_c of the saturating cost, metres", low=1e-3),
-        Option("substeps", int, 20, "RK4 sub-steps per control period (accuracy vs speed)", low=1),
+        Option("substeps", int, 40, "RK4 sub-steps per control period (accuracy vs speed)", low=1),
     )
 
     dt = 0.1
@@ -96,6 +113,8 @@ class CartPole(Task):
     def __init__(self, **options) -> None:
         super().__init__(**options)
         self.params = CartPoleParams(pole_length=self.options["pole_length"])
+        #: ``f(z, u) -> dz/dt`` with this task's physical parameters.
+        self.rhs = cartpole_rhs(self.params)
         self._spec = self._build_spec()
 
     def _build_spec(self) -> TaskSpec:
@@ -126,10 +145,6 @@ class CartPole(Task):
     @property
     def spec(self) -> TaskSpec:
         return self._spec
-
-    def rhs(self, z: Sequence[float], u: Sequence[float]) -> tuple[float, float, float, float]:
-        """The task's right-hand side with its physical parameters bound."""
-        return cartpole_rhs(z, u, self.params)
 
     def make_env(self, render_mode: str | None = None, measurement_noise: bool = True) -> OdeEnv:
         return OdeEnv(
