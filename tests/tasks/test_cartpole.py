@@ -14,6 +14,7 @@ from gymnasium.utils.env_checker import check_env
 import tasks  # noqa: F401  (registers the gymnasium ids)
 from harness.errors import InvalidActionError, OptionError
 from harness.task import Episode
+from harness.testing import TaskConformance
 from tasks.cartpole import CartPole, CartPoleParams, cartpole_energy, cartpole_rhs, pole_tip
 from tasks.simulation import rk4_zoh
 
@@ -227,3 +228,9 @@ def test_initial_distribution():
     starts = np.array([env.reset(seed=s)[1]["state"] for s in range(2000)])
     np.testing.assert_allclose(starts.mean(axis=0), 0.0, atol=0.01)
     np.testing.assert_allclose(np.cov(starts.T), 0.01 * np.eye(4), atol=0.002)
+
+
+class TestConformance(TaskConformance):
+    """The harness's own plugin conformance checks."""
+
+    task_cls = CartPole

@@ -14,6 +14,7 @@ from gymnasium.utils.env_checker import check_env
 import tasks  # noqa: F401  (registers the gymnasium ids)
 from harness.errors import InvalidActionError
 from harness.task import Episode
+from harness.testing import TaskConformance
 from tasks.double_pendulum import (
     CartDoublePendulum,
     DoublePendulumParams,
@@ -197,3 +198,9 @@ def test_seeding():
 
     np.testing.assert_array_equal(rollout(1), rollout(1))
     assert not np.allclose(rollout(1), rollout(2))
+
+
+class TestConformance(TaskConformance):
+    """The harness's own plugin conformance checks."""
+
+    task_cls = CartDoublePendulum
