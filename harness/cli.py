@@ -148,3 +148,27 @@ def bench_command(
     if isinstance(tracker, MlflowTracker):
         click.echo(f"MLflow run {result.run_id} in experiment '{task}' at {tracker.tracking_uri}")
         click.echo(f"  browse: mlflow ui --backend-store-uri {tracker.tracking_uri}")
+
+
+@main.command("eval")
+@click.argument("run_id")
+@click.option("--episodes", default=1000, show_default=True, type=click.IntRange(min=1), help="Test episodes.")
+@click.option("--seed", default=12345, show_default=True, type=click.IntRange(min=0), help="Seed of the test episodes' initial states.")
+@click.option("--trial", default=None, type=click.IntRange(min=1), help="Test this trial's policy (default: the last saved).")
+@click.option("--out", "out_dir", default=None, type=click.Path(file_okay=False), help="Folder for the histogram and summary.")
+@click.option("--tracking-uri", default=None, help="MLflow store (default: $MLFLOW_TRACKING_URI or sqlite:///./mlflow.db).")
+@_guarded
+def eval_command(run_id: str, episodes: int, seed: int, trial: int | None, out_dir: str | None, tracking_uri: str | None) -> None:
+    """Test a finished run's saved policy on many episodes (success rate, final-distance histogram)."""
+    from pathlib import Path
+
+    from harness.testrun import evaluate_saved_policy
+
+    report = evaluate_saved_policy(run_id, episodes, seed, tracking_uri, Path(out_dir) if out_dir else None, trial)
+    click.echo(
+        f"{report.task}: {report.policy_artifact} succeeded in {100 * report.success_rate:.1f}% of {report.episodes} "
+        f"test episodes (mean cost {report.mean_cost:.2f})"
+    )
+    if report.histogram is not None:
+        click.echo(f"  histogram of final distances: {report.histogram}")
+    click.echo(f"  summary: {report.summary_path} (also logged to the run under test/)")

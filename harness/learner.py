@@ -95,3 +95,14 @@ class Learner(ABC):
         with open(path, "wb") as fh:
             pickle.dump(policy, fh)
         return path
+
+    @classmethod
+    def load_policy(cls, path: Path) -> Policy:
+        """Read a policy written by :meth:`save_policy` (override both for another format)."""
+        from harness.errors import CheckpointError
+
+        try:
+            with open(path, "rb") as fh:
+                return pickle.load(fh)
+        except Exception as exc:
+            raise CheckpointError(f"cannot load the policy {Path(path).name} ({type(exc).__name__}: {exc}); the file is corrupt") from exc

@@ -249,6 +249,11 @@ class Task(ABC):
     def success(self, episode: Episode) -> bool:
         """Whether one episode met the task's success criterion (documented by the subclass)."""
 
+    def goal_distance(self, state: np.ndarray) -> float | None:
+        """Distance (metres) of the task's reference point (pole tip, top of the frame) from its
+        goal in the true state ``(D,)``, for test histograms; ``None`` if the task defines none."""
+        return None
+
 
 def check_action(action: Any, spec: TaskSpec) -> tuple[np.ndarray, bool]:
     """Validate an action and clip it to the bounds.

@@ -156,12 +156,18 @@ class CartPole(Task):
             measurement_noise=measurement_noise,
         )
 
+    def tip_distance(self, states: np.ndarray) -> np.ndarray:
+        """True distance (m) of the pole tip from the upright target ``(0, l)``; ``(..., 4)`` -> ``(...)``."""
+        tips = pole_tip(states, self.params.pole_length)
+        return np.hypot(tips[..., 0], tips[..., 1] - self.params.pole_length)
+
+    def goal_distance(self, state: np.ndarray) -> float:
+        return float(self.tip_distance(np.asarray(state)))
+
     def success(self, episode: Episode) -> bool:
         if episode.terminated or episode.steps < self.success_steps:
             return False
-        tips = pole_tip(episode.states[-self.success_steps:], self.params.pole_length)
-        dist = np.hypot(tips[:, 0], tips[:, 1] - self.params.pole_length)
-        return bool(np.all(dist <= self.success_radius))
+        return bool(np.all(self.tip_distance(episode.states[-self.success_steps:]) <= self.success_radius))
 
     def draw(self, state: np.ndarray) -> np.ndarray:
         """RGB image of the cart-pole: track, cart, pole and the target marker."""

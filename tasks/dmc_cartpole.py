@@ -260,6 +260,11 @@ class DMCCartpole(Task):
         """Number of final states that must be in the target region: one second's worth."""
         return max(1, round(1.0 / self.dt))
 
+    def goal_distance(self, state: np.ndarray) -> float:
+        """Distance (m) of the pole tip from the upright target ``(0, POLE_LENGTH)``."""
+        tip = pole_tip(np.asarray(state, dtype=np.float64))
+        return float(np.hypot(tip[0], tip[1] - POLE_LENGTH))
+
     def success(self, episode: Episode) -> bool:
         n = self.success_steps
         if episode.terminated or episode.steps < n:

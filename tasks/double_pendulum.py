@@ -195,6 +195,9 @@ class CartDoublePendulum(Task):
         tip = link_tip(states, l2, l3)
         return np.hypot(tip[..., 0], tip[..., 1] - (l2 + l3))
 
+    def goal_distance(self, state: np.ndarray) -> float:
+        return float(self.tip_distance(np.asarray(state)))
+
     def success(self, episode: Episode) -> bool:
         if episode.terminated or episode.steps < self.success_steps:
             return False

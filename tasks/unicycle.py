@@ -552,6 +552,9 @@ class Unicycle(Task):
         """Distance (m) of the top from its upright position for an observation-coordinate state."""
         return float(np.linalg.norm(top_offset(state[7], state[9], self.params)))
 
+    def goal_distance(self, state: np.ndarray) -> float:
+        return self.top_distance(np.asarray(state))
+
     def success(self, episode: Episode) -> bool:
         if episode.terminated or episode.steps < self._spec.horizon:
             return False

@@ -98,3 +98,25 @@ def test_bench_writes_an_mlflow_run_that_reads_back(tmp_path, mlflow_uri):
 def test_main_module_entry_point_help():
     proc = run_cli("--help")
     assert proc.returncode == 0 and "bench" in proc.stdout
+
+
+def test_eval_tests_a_saved_policy_and_logs_to_the_run(tmp_path, mlflow_uri):
+    import mlflow
+
+    proc = run_cli("bench", "-l", "random", "-t", "cartpole", "--seed", "5", "--max-trials", "1", "--eval-episodes", "1",
+                   "--tracking-uri", mlflow_uri, "-q", cwd=tmp_path)
+    assert proc.returncode == 0, proc.stderr
+    mlflow.set_tracking_uri(mlflow_uri)
+    run_id = mlflow.search_runs(experiment_names=["cartpole"], filter_string="params.seed = '5'").iloc[0]["run_id"]
+    result = CliRunner().invoke(main, ["eval", run_id, "--episodes", "12", "--out", str(tmp_path / "ev"), "--tracking-uri", mlflow_uri])
+    assert result.exit_code == 0, result.output
+    assert "succeeded in 0.0% of 12 test episodes" in result.output
+    import json
+
+    summary = json.loads((tmp_path / "ev" / "test_summary.json").read_text())
+    assert summary["episodes"] == 12 and summary["success_rate"] == 0.0 and summary["final_distance_median"] > 0.08
+    assert (tmp_path / "ev" / "test_final_distance.png").exists()
+    run = mlflow.MlflowClient(mlflow_uri).get_run(run_id)
+    assert run.data.metrics["test_success_rate"] == 0.0 and run.data.metrics["test_episodes"] == 12
+    missing = CliRunner().invoke(main, ["eval", "no-such-run", "--tracking-uri", mlflow_uri])
+    assert missing.exit_code == 2 and "no run 'no-such-run'" in missing.output
