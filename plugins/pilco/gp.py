@@ -32,6 +32,7 @@ from typing import Callable
 import numpy as np
 import scipy.optimize
 import torch
+from threadpoolctl import threadpool_limits
 
 from harness.errors import NumericalError
 from plugins.pilco.kernels import cholesky, se_ard
@@ -140,6 +141,47 @@ def _noisy_gram_cholesky(
     return cholesky(gram + noise, "GP Gram matrix K + sigma^2 I")
 
 
+class _NegLogMarginalLikelihood(torch.autograd.Function):
+    """Batched GP NLL with the analytic hyperparameter gradient (Rasmussen & Williams eq. 5.9).
+
+    With ``W_a = (K_a + sigma_a^2 I)^-1 - b_a b_a^T``, ``b_a = (K_a + sigma_a^2 I)^-1 y_a`` and the
+    noise-free Gram matrix ``F_a``, ``P_a = W_a o F_a`` (elementwise)::
+
+        d nll_a / d log ell_ad = (sum_i x_id^2 (P_a 1)_i - x_d^T P_a x_d) / ell_ad^2
+        d nll_a / d log alpha_a = sum_ij P_aij
+        d nll_a / d log sigma_a = sigma_a^2 tr W_a
+
+    About twice as fast as autograd through the Cholesky factorisation. No gradient with respect
+    to the data.
+    """
+
+    @staticmethod
+    def forward(ctx, inputs, targets, log_ell, log_alpha, log_sigma):  # type: ignore[override]
+        if ctx.needs_input_grad[0] or ctx.needs_input_grad[1]:
+            raise ValueError("negative_log_marginal_likelihood has no gradient with respect to the data")
+        n = inputs.shape[0]
+        gram_f = se_ard(inputs, inputs, log_ell, log_alpha)  # (E, n, n)
+        noise_var = torch.exp(2.0 * log_sigma)  # (E,)
+        eye = torch.eye(n, dtype=inputs.dtype)
+        chol = cholesky(gram_f + noise_var[:, None, None] * eye, "GP Gram matrix K + sigma^2 I")
+        b = torch.cholesky_solve(targets.T[..., None], chol)[..., 0]  # (E, n)
+        log_det = 2.0 * torch.log(chol.diagonal(dim1=-2, dim2=-1)).sum(-1)
+        ctx.save_for_backward(inputs, log_ell, gram_f, chol, b, noise_var)
+        return 0.5 * ((targets.T * b).sum(-1) + log_det + n * math.log(2.0 * math.pi))
+
+    @staticmethod
+    def backward(ctx, grad_out):  # type: ignore[override]
+        inputs, log_ell, gram_f, chol, b, noise_var = ctx.saved_tensors
+        w = torch.cholesky_inverse(chol) - b[:, :, None] * b[:, None, :]  # (E, n, n)
+        p = w * gram_f
+        row = p.sum(-1)  # (E, n)
+        quad = (inputs[None] * (p @ inputs)).sum(1)  # (E, d): x_d^T P x_d
+        g_ell = (row @ inputs.pow(2) - quad) * torch.exp(-2.0 * log_ell)
+        g_alpha = p.sum((-1, -2))
+        g_sigma = noise_var * w.diagonal(dim1=-2, dim2=-1).sum(-1)
+        return None, None, grad_out[:, None] * g_ell, grad_out * g_alpha, grad_out * g_sigma
+
+
 def negative_log_marginal_likelihood(
     inputs: torch.Tensor,
     targets: torch.Tensor,
@@ -149,14 +191,12 @@ def negative_log_marginal_likelihood(
 ) -> torch.Tensor:
     """``-log N(y_a | 0, K_a + sigma_a^2 I)`` for every output, ``(E,)`` (nats).
 
+    Differentiable in the log-hyperparameters (analytic gradient), not in the data.
+
     Args:
         inputs: ``(n, d)``; targets: ``(n, E)``; log-hyperparameters ``(E, d)``, ``(E,)``, ``(E,)``.
     """
-    n = inputs.shape[0]
-    chol = _noisy_gram_cholesky(inputs, log_ell, log_alpha, log_sigma)
-    white = torch.linalg.solve_triangular(chol, targets.T[..., None], upper=False)[..., 0]  # (E, n)
-    log_det = 2.0 * torch.log(chol.diagonal(dim1=-2, dim2=-1)).sum(-1)
-    return 0.5 * ((white**2).sum(-1) + log_det + n * math.log(2.0 * math.pi))
+    return _NegLogMarginalLikelihood.apply(inputs, targets, log_ell, log_alpha, log_sigma)
 
 
 def full_posterior(
@@ -246,14 +286,17 @@ def minimise_lbfgsb(
     if max_evals <= 0:
         value, _ = fun(x0_np)
         return MinimiseResult(torch.tensor(x0_np, dtype=DTYPE), value, 1, 0, "no optimisation (budget 0)")
-    res = scipy.optimize.minimize(
-        fun,
-        x0_np,
-        jac=True,
-        method="L-BFGS-B",
-        bounds=bounds,
-        options={"maxfun": max_evals, "maxiter": max_evals},
-    )
+    # scipy's L-BFGS-B calls BLAS on tiny vectors; a multi-threaded OpenBLAS there cost ~3 ms per
+    # iteration (more than a whole n = 100 GP evaluation) on a loaded 2-core machine.
+    with threadpool_limits(limits=1, user_api="blas"):
+        res = scipy.optimize.minimize(
+            fun,
+            x0_np,
+            jac=True,
+            method="L-BFGS-B",
+            bounds=bounds,
+            options={"maxfun": max_evals, "maxiter": max_evals},
+        )
     return MinimiseResult(torch.tensor(res.x, dtype=DTYPE), float(res.fun), count[0], int(res.nit), str(res.message))
 
 
@@ -402,9 +445,12 @@ class GPModel:
     Args:
         sparse_threshold: FITC takes over when ``n > sparse_threshold`` (and ``n > num_pseudo``).
         num_pseudo: ``M`` shared pseudo-inputs.
-        max_evals_full: L-BFGS-B function-evaluation budget of each hyperparameter run.
-        max_evals_fitc: budget of the pseudo-input optimisation (x ``fitc_first_factor`` the first
-            time, when the pseudo-inputs start from a random subset; the reference triples it).
+        max_evals_full: L-BFGS-B function-evaluation budget of each hyperparameter run (the
+            reference allows 300 line searches; runs here converge in ~150-250 evaluations).
+        max_evals_fitc: budget of a warm-started pseudo-input optimisation; the first one, from a
+            random subset of the inputs, gets ``fitc_first_factor`` times more (the reference
+            triples it). One FITC evaluation costs O(E n M^2): ~0.4 s for n = 1000, M = 300, E = 4
+            on one core, hence the smaller budget than the reference's 500 line searches.
         fitc_first_factor: see above.
         hyper_subset: at most this many random points train the hyperparameters when sparse
             (default ``sparse_threshold``).
@@ -419,8 +465,8 @@ class GPModel:
         sparse_threshold: int = 300,
         num_pseudo: int = 300,
         max_evals_full: int = 300,
-        max_evals_fitc: int = 300,
-        fitc_first_factor: int = 1,
+        max_evals_fitc: int = 100,
+        fitc_first_factor: int = 3,
         hyper_subset: int | None = None,
         noise_floor_rel: float = NOISE_FLOOR_REL,
         noise_floor_abs: float = NOISE_FLOOR_ABS,
@@ -428,6 +474,8 @@ class GPModel:
         restart_scale: float = 1.0,
         fitc_ridge: float = FITC_RIDGE,
     ) -> None:
+        if num_pseudo < 1 or sparse_threshold < 1 or max_evals_full < 0 or max_evals_fitc < 0:
+            raise ValueError("GPModel needs num_pseudo, sparse_threshold >= 1 and budgets >= 0")
         self.sparse_threshold = int(sparse_threshold)
         self.num_pseudo = int(num_pseudo)
         self.max_evals_full = int(max_evals_full)
@@ -462,8 +510,14 @@ class GPModel:
     ) -> FitReport:
         """Train on ``inputs (n, d)``, ``targets (n, E)`` and return a :class:`FitReport`.
 
-        ``warm_start``: previous hyperparameters (and pseudo-inputs) to start from; ``max_evals``
-        overrides ``max_evals_full``; ``restarts`` extra runs from seeded perturbations.
+        Args:
+            warm_start: previous hyperparameters to start from (instead of the reference
+                initialisation); its pseudo-inputs are reused if they have shape ``(M, d)``.
+            max_evals: overrides ``max_evals_full`` for this call.
+            restarts: extra hyperparameter runs from the start perturbed by
+                ``N(0, restart_scale^2)`` in log space; the best run per output is kept.
+            seed: seeds the restarts and the random subsets (hyperparameter subset, first
+                pseudo-inputs).
         """
         start = time.perf_counter()
         x, y = _as_data(inputs, targets)
