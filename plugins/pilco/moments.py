@@ -60,26 +60,58 @@ def _pair_indices(num_outputs: int) -> tuple[torch.Tensor, torch.Tensor, torch.T
     return as_long([p[0] for p in pairs]), as_long([p[1] for p in pairs]), as_long(full)
 
 
+class _Workspace:
+    """Reusable ``(P, n, n)`` buffers for :class:`_ExpBilinearContraction`.
+
+    Fresh multi-megabyte tensors are expensive here (first-touch page faults cost about as much as
+    the arithmetic), so a rollout gives every step a *slot* whose ``Q`` buffer is kept and reused by
+    the next rollout, and the backward pass reuses one scratch buffer. Reuse is safe: ``Q`` is
+    saved with ``save_for_backward``, so a backward through an overwritten slot raises instead of
+    returning wrong gradients.
+    """
+
+    def __init__(self) -> None:
+        self.q: dict[int, torch.Tensor] = {}
+        self.scratch: torch.Tensor | None = None
+
+    def q_buffer(self, slot: int | None, shape: tuple[int, ...], dtype: torch.dtype) -> torch.Tensor:
+        if slot is None:
+            return torch.empty(shape, dtype=dtype)
+        buf = self.q.get(slot)
+        if buf is None or buf.shape != shape or buf.dtype != dtype:
+            buf = self.q[slot] = torch.empty(shape, dtype=dtype)
+        return buf
+
+    def scratch_buffer(self, shape: tuple[int, ...], dtype: torch.dtype) -> torch.Tensor:
+        if self.scratch is None or self.scratch.shape != shape or self.scratch.dtype != dtype:
+            self.scratch = torch.empty(shape, dtype=dtype)
+        return self.scratch
+
+
 class _ExpBilinearContraction(torch.autograd.Function):
     """``Q_p = exp(left_p @ right_p^T)`` contracted, with a hand-written backward.
 
     Inputs: ``left, right (P, n, k)``, ``w_left, w_right (P, n)``, ``inv_k (E', n, n)`` symmetric
-    (``E' <= P``; ``E' = 0`` for no trace term). Outputs: ``quad (P,) = w_left_p^T Q_p w_right_p``
-    and ``trace (E',) = sum_ij inv_k_a,ij Q_a,ij`` (= ``tr(inv_k_a Q_a)`` for symmetric ``Q_a``).
+    (``E' <= P``; ``E' = 0`` for no trace term), a :class:`_Workspace` and a slot (or ``None``).
+    Outputs: ``quad (P,) = w_left_p^T Q_p w_right_p`` and
+    ``trace (E',) = sum_ij inv_k_a,ij Q_a,ij`` (= ``tr(inv_k_a Q_a)`` for symmetric ``Q_a``).
 
-    Only ``Q`` (``P n^2``) is stored for the backward pass; the backward makes about four passes
-    over ``P n^2`` numbers (autograd on the same expression needs twice that plus zero-fills).
+    Only ``Q`` (``P n^2``) is stored for the backward pass, which makes four passes over ``P n^2``
+    numbers (outer product, trace weight, times ``Q``, two thin products) in a reused buffer.
     """
 
     @staticmethod
-    def forward(ctx, left, right, w_left, w_right, inv_k):
-        Q = torch.bmm(left, right.mT).exp_()
+    def forward(ctx, left, right, w_left, w_right, inv_k, workspace, slot):
+        p, n = left.shape[0], left.shape[1]
+        Q = workspace.q_buffer(slot, (p, n, n), left.dtype)
+        torch.bmm(left, right.mT, out=Q)
+        Q.exp_()
         q_wr = torch.bmm(Q, w_right[..., None]).squeeze(-1)  # (P, n)
         quad = (q_wr * w_left).sum(-1)
         e = inv_k.shape[0]
-        nn = Q.shape[1] * Q.shape[2]
-        trace = torch.bmm(inv_k.reshape(e, 1, nn), Q[:e].reshape(e, nn, 1)).reshape(e)
+        trace = torch.linalg.vecdot(inv_k.reshape(e, n * n), Q[:e].reshape(e, n * n))
         ctx.save_for_backward(left, right, w_left, w_right, inv_k, Q, q_wr)
+        ctx.workspace = workspace
         return quad, trace
 
     @staticmethod
@@ -89,18 +121,21 @@ class _ExpBilinearContraction(torch.autograd.Function):
         e = inv_k.shape[0]
         if g_quad is None:
             g_quad = torch.zeros(Q.shape[0], dtype=Q.dtype)
-        G = (w_left * g_quad[:, None])[:, :, None] * w_right[:, None, :]  # dL/dQ (P, n, n)
+        G = ctx.workspace.scratch_buffer(tuple(Q.shape), Q.dtype)
+        torch.bmm((w_left * g_quad[:, None])[:, :, None], w_right[:, None, :], out=G)  # dL/dQ
         if e > 0 and g_trace is not None:
-            G[:e].add_(inv_k * g_trace[:, None, None])
+            G[:e].addcmul_(inv_k, g_trace[:, None, None])
         G.mul_(Q)  # dL/d(exponent)
         grad_left = torch.bmm(G, right) if ctx.needs_input_grad[0] else None
-        grad_right = torch.bmm(G.mT, left) if ctx.needs_input_grad[1] else None
+        grad_right = torch.bmm(left.mT, G).mT if ctx.needs_input_grad[1] else None
         grad_wl = g_quad[:, None] * q_wr if ctx.needs_input_grad[2] else None
-        grad_wr = g_quad[:, None] * torch.bmm(Q.mT, w_left[..., None]).squeeze(-1) if ctx.needs_input_grad[3] else None
+        grad_wr = None
+        if ctx.needs_input_grad[3]:
+            grad_wr = g_quad[:, None] * torch.bmm(w_left[:, None, :], Q).squeeze(1)
         grad_inv = None
         if ctx.needs_input_grad[4] and g_trace is not None:
             grad_inv = g_trace[:, None, None] * Q[:e]
-        return grad_left, grad_right, grad_wl, grad_wr, grad_inv
+        return grad_left, grad_right, grad_wl, grad_wr, grad_inv, None, None
 
 
 class MomentMatchingGP:
@@ -134,13 +169,16 @@ class MomentMatchingGP:
         self.beta = beta
         self.beta_a, self.beta_b = beta[first], beta[second]
         self.inv_k = posterior.inv_k.contiguous()
+        self.workspace = _Workspace()
 
     def predict(
-        self, m: torch.Tensor, S: torch.Tensor, mean_only: bool = False
+        self, m: torch.Tensor, S: torch.Tensor, mean_only: bool = False, slot: int | None = None
     ) -> tuple[torch.Tensor, torch.Tensor, torch.Tensor]:
         """Moments of ``f(x)`` for ``x ~ N(m, S)``: ``M (E,)``, ``V (E, E)``, ``C (d, E)``.
 
-        See :func:`predict_uncertain` for the meaning of the arguments and results.
+        See :func:`predict_uncertain` for the meaning of the arguments and results. ``slot``: an
+        integer (e.g. the time step of a rollout) to keep the ``(P, n, n)`` work buffer of this call
+        for reuse by the next call with the same slot (see :class:`_Workspace`); ``None`` allocates.
         """
         e = self.num_outputs
         d = m.shape[0]
@@ -176,7 +214,7 @@ class MomentMatchingGP:
         left = torch.cat([2.0 * za_t, u[..., None], ones], dim=-1)  # (P, n, d + 2)
         right = torch.cat([zb, ones, v[..., None]], dim=-1)  # (P, n, d + 2)
         inv_k = self.inv_k[:0] if mean_only else self.inv_k
-        quad, trace = _ExpBilinearContraction.apply(left, right, self.beta_a, self.beta_b, inv_k)
+        quad, trace = _ExpBilinearContraction.apply(left, right, self.beta_a, self.beta_b, inv_k, self.workspace, slot)
         V = quad[self.full].reshape(e, e) - M[:, None] * M[None, :]
         if not mean_only:
             V = V + torch.diag(self.alpha2 - trace)

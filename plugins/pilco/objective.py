@@ -16,6 +16,7 @@ import torch
 
 from harness.task import SaturatingCost
 from plugins.pilco.cost import CostMoments
+from plugins.pilco.moments import MomentMatchingGP
 from plugins.pilco.posterior import GPPosterior
 from plugins.pilco.propagate import StateLayout, rollout
 
@@ -47,6 +48,7 @@ class PolicyObjective:
     ) -> None:
         self.controller = controller
         self.posterior = posterior.detach()
+        self.dynamics = MomentMatchingGP(self.posterior)  # kept: precomputed constants, work buffers
         self.layout = layout
         self.cost = CostMoments(cost, width)
         self.init_mean = torch.as_tensor(np.asarray(init_mean, dtype=np.float64))
@@ -59,7 +61,7 @@ class PolicyObjective:
     # ---- closed form ----------------------------------------------------------------------------
     def state_distributions(self) -> tuple[torch.Tensor, torch.Tensor]:
         """Predicted ``means (H+1, D)``, ``covs (H+1, D, D)`` (index 0 = initial)."""
-        return rollout(self.init_mean, self.init_cov, self.horizon, self.posterior, self.controller, self.layout, self.mean_only)
+        return rollout(self.init_mean, self.init_cov, self.horizon, self.dynamics, self.controller, self.layout, self.mean_only)
 
     def step_costs(self) -> tuple[torch.Tensor, torch.Tensor]:
         """Expected cost and its variance for ``x_1 .. x_H``: two ``(H,)`` tensors."""

@@ -103,12 +103,14 @@ def propagate_step(
     policy_moments: MomentMap,
     layout: StateLayout,
     mean_only: bool = False,
+    slot: int | None = None,
 ) -> tuple[torch.Tensor, torch.Tensor]:
     """``N(m, S)`` at time t -> ``(m', S')`` at t+1. ``m (D,)``, ``S (D, D)``.
 
     ``dynamics`` is ``MomentMatchingGP(posterior)``, ``policy_moments`` is
     ``controller.moment_map()`` (build both once per rollout); ``mean_only`` is passed to
-    :meth:`~plugins.pilco.moments.MomentMatchingGP.predict` (deterministic-GP-mean ablation).
+    :meth:`~plugins.pilco.moments.MomentMatchingGP.predict` (deterministic-GP-mean ablation),
+    ``slot`` too (work-buffer reuse across rollouts; the rollout passes the time step).
     """
     d = layout.state_dim
     ma, sa = augment_trig(m, S, layout.angle_map)  # (A,), (A, A)
@@ -123,7 +125,7 @@ def propagate_step(
     s_in = torch.cat(
         [torch.cat([s_a_mod[mod], s_mod_u], dim=1), torch.cat([s_mod_u.T, su], dim=1)], dim=0
     )
-    md, vd, cd = dynamics.predict(m_in, s_in, mean_only=mean_only)
+    md, vd, cd = dynamics.predict(m_in, s_in, mean_only=mean_only, slot=slot)
     s_x_in = torch.cat([s_a_mod[:d], s_au[:d]], dim=1)  # (D, q + F) cov[x, GP input]
     s_xd = s_x_in @ cd  # (D, D) cov[x, Delta]
     s_next = S + vd + s_xd + s_xd.T
@@ -134,26 +136,29 @@ def rollout(
     m0: torch.Tensor,
     S0: torch.Tensor,
     horizon: int,
-    posterior: GPPosterior,
+    posterior: GPPosterior | MomentMatchingGP,
     controller: torch.nn.Module,
     layout: StateLayout,
     mean_only: bool = False,
 ) -> tuple[torch.Tensor, torch.Tensor]:
     """Predicted state distributions over ``horizon`` steps from ``N(m0, S0)``.
 
+    ``posterior``: the dynamics GP, or a :class:`MomentMatchingGP` of it kept across rollouts (as
+    :class:`~plugins.pilco.objective.PolicyObjective` does) to reuse its work buffers.
     Returns means ``(H+1, D)`` and covariances ``(H+1, D, D)``; index 0 is the initial state.
     """
+    dynamics = posterior if isinstance(posterior, MomentMatchingGP) else MomentMatchingGP(posterior)
+    posterior = dynamics.posterior
     if posterior.num_outputs != layout.state_dim:
         raise ValueError(f"the dynamics GP has {posterior.num_outputs} outputs; the state has {layout.state_dim}")
     expected = layout.model_input_dim + controller.num_controls
     if posterior.input_dim != expected:
         raise ValueError(f"the dynamics GP takes {posterior.input_dim} inputs; layout + controls give {expected}")
     policy_moments = controller.moment_map()
-    dynamics = MomentMatchingGP(posterior)
     means, covs = [m0], [S0]
     m, S = m0, S0
-    for _ in range(horizon):
-        m, S = propagate_step(m, S, dynamics, policy_moments, layout, mean_only)
+    for t in range(horizon):
+        m, S = propagate_step(m, S, dynamics, policy_moments, layout, mean_only, slot=t)
         means.append(m)
         covs.append(S)
     return torch.stack(means), torch.stack(covs)

@@ -15,7 +15,7 @@ import pytest
 import torch
 
 from plugins.pilco.kernels import se_ard
-from plugins.pilco.moments import MomentMatchingGP, _ExpBilinearContraction, predict_uncertain
+from plugins.pilco.moments import MomentMatchingGP, _ExpBilinearContraction, _Workspace, predict_uncertain
 from plugins.pilco.posterior import GPPosterior
 from plugins.pilco.sparse import fitc_posterior
 from tests.pilco.random_gp import DT, gp_mean_var, mc_moments, random_gaussian, random_posterior
@@ -159,7 +159,25 @@ def test_contraction_backward_gradcheck() -> None:
     wr = torch.randn(P, n, generator=gen, dtype=DT).requires_grad_()
     A = torch.randn(e, n, n, generator=gen, dtype=DT)
     inv_k = (A + A.mT).requires_grad_()
-    assert torch.autograd.gradcheck(_ExpBilinearContraction.apply, (left, right, wl, wr, inv_k))
+    for slot in (None, 0):
+        fn = lambda *args: _ExpBilinearContraction.apply(*args, _Workspace(), slot)  # noqa: E731
+        assert torch.autograd.gradcheck(fn, (left, right, wl, wr, inv_k))
+
+
+def test_reused_work_buffer_is_detected() -> None:
+    """Overwriting a slot before the backward pass of the graph that used it raises."""
+    gen = torch.Generator().manual_seed(801)
+    gp = MomentMatchingGP(random_posterior(2, 8, 3, gen))
+    m, S = random_gaussian(3, gen)
+    m.requires_grad_()
+    M1, V1, _ = gp.predict(m, S, slot=0)
+    M2, V2, _ = gp.predict(m + 0.1, S, slot=0)
+    torch.autograd.grad(V2.sum(), m)  # the latest use of the slot is fine
+    with pytest.raises(RuntimeError, match="modified by an inplace operation"):
+        torch.autograd.grad(V1.sum(), m)
+    # results do not depend on the slot
+    M3, V3, _ = gp.predict(m, S, slot=None)
+    assert torch.equal(M1, M3) and torch.equal(V1, V3)
 
 
 @pytest.mark.parametrize("mean_only", [False, True])
