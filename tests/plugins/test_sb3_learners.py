@@ -1,0 +1,238 @@
+"""The SB3 learners (``sac``, ``ppo``): maps, accounting through the harness, budget, saving, seeding.
+
+Small networks and a few hundred steps per test; real SB3 training, real cart-pole.
+"""
+
+from __future__ import annotations
+
+import numpy as np
+import pytest
+
+pytest.importorskip("stable_baselines3")
+
+from harness import runner  # noqa: E402
+from harness.discovery import load_task  # noqa: E402
+from harness.errors import BudgetExhaustedError, OptionError  # noqa: E402
+from harness.interaction import Interaction  # noqa: E402
+from harness.runner import RunConfig  # noqa: E402
+from harness.testing import LearnerConformance  # noqa: E402
+from plugins.sb3_learners import (  # noqa: E402
+    PPOLearner,
+    SACLearner,
+    SB3Policy,
+    angle_features,
+    feature_dim,
+    from_bounds,
+    make_agent_env,
+    to_bounds,
+    whole_episode_rollout,
+)
+
+#: tiny SAC: learns from step 10, trains after every (40-step) episode, hand-over every episode
+SAC_SMALL = {"net_width": 16, "batch_size": 16, "learning_starts": 10, "eval_every_steps": 40}
+#: tiny PPO: an update (and a hand-over) every 2 episodes
+PPO_SMALL = {"net_width": 16, "batch_size": 40, "n_steps": 80, "n_epochs": 2}
+
+
+@pytest.fixture
+def cartpole():
+    return load_task("cartpole")()
+
+
+@pytest.fixture
+def sb3_plugins(monkeypatch):
+    learners = {"sac": SACLearner, "ppo": PPOLearner}
+    monkeypatch.setattr(runner, "load_learner", lambda name: learners[name])
+
+
+# -- observation and action maps -------------------------------------------------------------
+
+
+def test_angle_features_replace_angles_by_sin_then_cos():
+    x = np.array([1.0, -2.0, 3.0, 0.7, 4.0, -1.2])
+    got = angle_features(x, (3, 5))
+    want = [1.0, -2.0, 3.0, 4.0, np.sin(0.7), np.sin(-1.2), np.cos(0.7), np.cos(-1.2)]
+    np.testing.assert_allclose(got, want, rtol=0, atol=1e-15)
+    assert feature_dim(6, (3, 5)) == got.shape[-1] == 8
+    batch = np.stack([x, 2 * x])
+    np.testing.assert_allclose(angle_features(batch, (3, 5))[1], angle_features(2 * x, (3, 5)))
+    no_angles = angle_features(x, ())
+    assert no_angles is not x and np.array_equal(no_angles, x)
+
+
+def test_angle_features_are_periodic():
+    x = np.array([0.3, 0.1, -0.5, 1.1])
+    np.testing.assert_allclose(angle_features(x, (3,)), angle_features(x + [0, 0, 0, 2 * np.pi], (3,)), atol=1e-12)
+
+
+def test_to_bounds_maps_the_unit_box_affinely_and_clips():
+    low, high = np.array([-10.0, 0.0]), np.array([10.0, 50.0])
+    np.testing.assert_allclose(to_bounds(np.array([-1.0, -1.0]), low, high), low)
+    np.testing.assert_allclose(to_bounds(np.array([1.0, 1.0]), low, high), high)
+    np.testing.assert_allclose(to_bounds(np.array([0.0, 0.5]), low, high), [0.0, 37.5])
+    np.testing.assert_allclose(to_bounds(np.array([3.0, -7.0]), low, high), [10.0, 0.0])
+    u = np.array([-3.3, 12.5])
+    np.testing.assert_allclose(to_bounds(from_bounds(u, low, high), low, high), u, atol=1e-12)
+
+
+def test_agent_env_sees_sin_cos_and_drives_the_system_in_control_units(cartpole):
+    spec = cartpole.spec
+    interaction = Interaction(cartpole.make_env(), spec, seed=4)
+    env = make_agent_env(interaction.as_env(), spec)
+    assert env.observation_space.shape == (5,) and env.action_space.shape == (1,)
+    first, _ = env.reset()
+    obs, *_ = env.step(np.array([1.0], dtype=np.float32))
+    obs2, *_ = env.step(np.array([-0.5], dtype=np.float32))
+    interaction.close()
+    episode = interaction.episodes[0]
+    np.testing.assert_allclose(episode.actions[:, 0], [10.0, -5.0])  # force limit 10 N
+    for seen, raw in zip((first, obs, obs2), episode.observations):
+        assert seen.dtype == np.float32
+        np.testing.assert_allclose(seen, angle_features(raw, (3,)), rtol=1e-6, atol=1e-6)
+    assert interaction.steps == 2
+
+
+class _RecordingModel:
+    """Stands in for an SB3 model: remembers what it was shown, answers a fixed normalised action."""
+
+    def __init__(self, action):
+        self.action = np.asarray(action, dtype=np.float32)
+        self.seen = []
+
+    def predict(self, observation, deterministic=False):
+        self.seen.append((np.array(observation), deterministic))
+        return self.action, None
+
+
+def test_policy_applies_the_same_maps_as_training(cartpole):
+    model = _RecordingModel([0.25])
+    policy = SB3Policy(model, cartpole.spec)
+    x = np.array([0.1, -0.2, 0.3, 2.5])
+    u = policy(x)
+    np.testing.assert_allclose(u, [2.5])  # 0.25 of the way from 0 to 10 N
+    seen, deterministic = model.seen[0]
+    assert deterministic
+    np.testing.assert_allclose(seen, angle_features(x, (3,)), rtol=1e-6)
+
+
+# -- options and presets ---------------------------------------------------------------------
+
+
+def test_presets_are_overridden_by_set_options(cartpole):
+    spec = cartpole.spec
+    sac = SACLearner(spec, {"learning_rate": "3e-4", "train_freq": "1"}).hyperparameters()
+    assert sac["learning_rate"] == 3e-4 and sac["train_freq"] == 1 and sac["gradient_steps"] == -1
+    assert sac["eval_every_steps"] == 5 * spec.horizon
+    ppo = PPOLearner(spec, {"n_steps": 100, "eval_every_steps": 150}).hyperparameters()
+    assert ppo["n_steps"] == 100 and ppo["eval_every_steps"] == 200  # rounded up to whole updates
+    assert ppo["batch_size"] == 100 // 16
+    default = PPOLearner(spec).hyperparameters()
+    assert default["n_steps"] == default["eval_every_steps"] == 32 * 40 and default["batch_size"] == 80
+    with pytest.raises(OptionError, match="n_steps"):
+        SACLearner(spec, {"n_steps": 10})
+
+
+@pytest.mark.parametrize("horizon, n_steps", [(40, 1280), (100, 1600), (67, 1072), (30, 960), (500, 8000)])
+def test_ppo_rollouts_are_whole_episodes_in_whole_minibatches(horizon, n_steps):
+    got = whole_episode_rollout(horizon)
+    assert got == n_steps and got % horizon == 0 and (got // horizon) % 16 == 0
+
+
+def test_default_limits_are_budgets_not_trials():
+    assert SACLearner.default_max_trials is None and PPOLearner.default_max_trials is None
+    assert SACLearner.default_budget_seconds == 1e4 and PPOLearner.default_budget_seconds == 1e5
+
+
+# -- the harness contract --------------------------------------------------------------------
+
+
+class TestSACConformance(LearnerConformance):
+    learner_cls = SACLearner
+    learner_options = SAC_SMALL
+
+
+class TestPPOConformance(LearnerConformance):
+    learner_cls = PPOLearner
+    learner_options = PPO_SMALL
+
+
+@pytest.mark.parametrize("learner, options, chunk", [("sac", SAC_SMALL, 40), ("ppo", PPO_SMALL, 80)])
+def test_evaluation_steps_are_not_counted(sb3_plugins, learner, options, chunk):
+    few = runner.run(RunConfig(learner, "cartpole", seed=2, learner_options=options, max_trials=2, eval_episodes=1))
+    many = runner.run(RunConfig(learner, "cartpole", seed=2, learner_options=options, max_trials=2, eval_episodes=4))
+    dt = 0.1
+    assert few.interaction_seconds == many.interaction_seconds == pytest.approx(2 * chunk * dt)
+    for run in (few, many):
+        assert [h["interaction_seconds"] for h in run.history] == pytest.approx([chunk * dt, 2 * chunk * dt])
+        # the learner's own step counter agrees with the harness's seconds
+        assert [h["sb3_num_timesteps"] * dt for h in run.history] == pytest.approx([chunk * dt, 2 * chunk * dt])
+        assert all(h["sb3_steps_per_second"] > 0 for h in run.history)
+
+
+@pytest.mark.parametrize("learner, options", [("sac", SAC_SMALL), ("ppo", PPO_SMALL)])
+def test_budget_stops_the_run_inside_sb3(sb3_plugins, learner, options):
+    # 6 s = 60 steps, less than one hand-over chunk of 100 steps: SB3 is stopped mid-learn()
+    result = runner.run(RunConfig(learner, "cartpole", learner_options={**options, "eval_every_steps": 100}, budget_seconds=6.0))
+    assert result.stop_reason == "budget" and not result.solved
+    assert result.interaction_seconds == pytest.approx(6.0)
+    assert result.interaction_time_to_success is None and result.trials == 0
+
+
+def test_budget_error_propagates_out_of_learn(cartpole):
+    learner = SACLearner(cartpole.spec, SAC_SMALL, seed=0)
+    interaction = Interaction(cartpole.make_env(), cartpole.spec, budget_seconds=2.5, seed=0)
+    generator = learner.learn(interaction)
+    with pytest.raises(BudgetExhaustedError):
+        next(generator)
+    assert interaction.steps == 25
+    interaction.close()
+
+
+def _first_handover(learner_cls, options, task, seed):
+    learner = learner_cls(task.spec, options, seed=seed)
+    interaction = Interaction(task.make_env(), task.spec, seed=seed)
+    generator = learner.learn(interaction)
+    policy = next(generator)
+    return learner, policy, generator, interaction
+
+
+def _probes(spec, n=6):
+    return np.random.default_rng(5).multivariate_normal(spec.init_mean, np.diag([1.0, 1.0, 4.0, 4.0]), size=n)
+
+
+@pytest.mark.parametrize("learner_cls, options", [(SACLearner, SAC_SMALL), (PPOLearner, PPO_SMALL)])
+def test_saved_policy_reloads_with_the_same_actions(cartpole, tmp_path, learner_cls, options):
+    learner, policy, generator, interaction = _first_handover(learner_cls, options, cartpole, seed=1)
+    path = learner.save_policy(policy, tmp_path / "policy_trial001")
+    before = np.array([policy(x) for x in _probes(cartpole.spec)])
+    generator.close()
+    interaction.close()
+    assert path.suffix == ".zip" and path.exists()
+    reloaded = learner_cls.load_policy(path, cartpole.spec)
+    after = np.array([reloaded(x) for x in _probes(cartpole.spec)])
+    np.testing.assert_array_equal(before, after)
+    assert np.all(np.abs(after) <= 10.0) and np.ptp(after) > 0  # in the bounds, not constant
+
+
+@pytest.mark.parametrize("learner_cls, options", [(SACLearner, SAC_SMALL), (PPOLearner, PPO_SMALL)])
+def test_same_seed_same_first_handover_other_seed_differs(cartpole, learner_cls, options):
+    actions = {}
+    for label, seed in (("a", 3), ("b", 3), ("c", 4)):
+        _, policy, generator, interaction = _first_handover(learner_cls, options, cartpole, seed)
+        actions[label] = np.array([policy(x) for x in _probes(cartpole.spec)])
+        generator.close()
+        interaction.close()
+    np.testing.assert_array_equal(actions["a"], actions["b"])
+    assert not np.array_equal(actions["a"], actions["c"])
+
+
+def test_hyperparameters_are_attached_at_the_first_handover(cartpole):
+    import json
+
+    learner, _, generator, interaction = _first_handover(SACLearner, SAC_SMALL, cartpole, seed=0)
+    generator.close()
+    interaction.close()
+    (path,) = learner.artifacts
+    saved = json.loads(path.read_text())
+    assert saved["algorithm"] == "SAC" and saved["task"] == "cartpole"
+    assert saved["net_width"] == 16 and saved["eval_every_steps"] == 40 and saved["learning_rate"] == 1e-3
