@@ -113,6 +113,8 @@ def _parse_budget(value: str | None) -> float | None:
 @click.option("--tracking-uri", default=None, help="MLflow store (default: $MLFLOW_TRACKING_URI or sqlite:///./mlflow.db).")
 @click.option("--no-tracking", is_flag=True, help="Do not log to MLflow (results are printed only).")
 @click.option("--quiet", "-q", is_flag=True, help="No progress output.")
+@click.option("--resume", "resume", is_flag=False, flag_value="latest", default=None, metavar="[RUN_ID]",
+              help="Continue a run from its last checkpoint (no id: the newest unfinished run of this learner/task/seed).")
 @_guarded
 def bench_command(
     learner: str,
@@ -125,6 +127,7 @@ def bench_command(
     tracking_uri: str | None,
     no_tracking: bool,
     quiet: bool,
+    resume: str | None,
 ) -> None:
     """Run one learner on one task and report its interaction time to success."""
     from harness.discovery import load_learner, load_task
@@ -137,11 +140,17 @@ def bench_command(
     to_learner, to_task = split_assignments(parse_assignments(assignments), learner_cls.option_set(), task_cls.option_set())
     config = RunConfig(learner, task, seed, to_learner, to_task, max_trials, _parse_budget(budget_seconds), eval_episodes)
     prepare(config)  # validate everything before the store is touched
+    if resume is not None and no_tracking:
+        raise HarnessError("--resume needs the tracking store (drop --no-tracking)")
     tracker = MemoryTracker() if no_tracking else MlflowTracker(tracking_uri)
+    if resume == "latest":
+        resume = tracker.find_resumable(task, learner, seed)
+        if resume is None:
+            raise HarnessError(f"no unfinished run of {learner} on {task} with seed {seed} in {tracker.tracking_uri} to resume")
     try:
-        result = run(config, tracker=tracker, progress=SilentProgress() if quiet else RichProgress())
+        result = run(config, tracker=tracker, progress=SilentProgress() if quiet else RichProgress(), resume_run_id=resume)
     except KeyboardInterrupt:
-        click.echo(f"interrupted: run {tracker.run_id} marked KILLED", err=True)
+        click.echo(f"interrupted: run {tracker.run_id} marked KILLED; continue it with the same command plus --resume {tracker.run_id}", err=True)
         sys.exit(130)
     if quiet:
         click.echo(result.summary())

@@ -215,9 +215,42 @@ class Interaction:
                 callback(episode)
         self._current = None
 
+    def state_dict(self) -> dict[str, Any]:
+        """Counters, recorded episodes and the environment's RNG state (between episodes only)."""
+        if self._current is not None:
+            raise InteractionError("cannot checkpoint an interaction in the middle of an episode")
+        return {"steps": self._steps, "episodes": list(self._episodes), "seed": self._seed, "env_rng": env_rng_state(self._env)}
+
+    def load_state_dict(self, state: dict[str, Any]) -> None:
+        """Continue from :meth:`state_dict` (same task variant; the budget stays this object's)."""
+        self._steps = int(state["steps"])
+        self._episodes = list(state["episodes"])
+        self._seed = state["seed"]
+        self._current = None
+        if self._seed is None:  # the first reset already happened: restore the RNG it left
+            self._env.reset(seed=0)  # materialise the env's generators, then overwrite them
+            set_env_rng_state(self._env, state["env_rng"])
+
     def close(self) -> None:
         self._finish_episode()
         self._env.close()
+
+
+def env_rng_state(env: gym.Env) -> Any:
+    """The environment's random state: its own ``rng_state()`` if it has one, else ``np_random``'s."""
+    inner = env.unwrapped
+    if callable(getattr(inner, "rng_state", None)):
+        return inner.rng_state()
+    return inner.np_random.bit_generator.state
+
+
+def set_env_rng_state(env: gym.Env, state: Any) -> None:
+    """Inverse of :func:`env_rng_state`."""
+    inner = env.unwrapped
+    if callable(getattr(inner, "set_rng_state", None)):
+        inner.set_rng_state(state)
+    else:
+        inner.np_random.bit_generator.state = state
 
 
 class _InteractionEnv(gym.Env):

@@ -62,6 +62,9 @@ class Learner(ABC):
     extra: ClassVar[str | None] = None
     #: top-level modules this plugin needs at use time (checked by discovery, e.g. ``("dm_control",)``).
     requires: ClassVar[tuple[str, ...]] = ()
+    #: whether :meth:`state_dict`/:meth:`load_state_dict` capture everything needed to continue
+    #: a run after a hand-over (then the harness checkpoints after every trial and can resume)
+    supports_resume: ClassVar[bool] = False
     #: limits used when the user gives neither --max-trials nor --budget-seconds
     default_max_trials: ClassVar[int | None] = 20
     default_budget_seconds: ClassVar[float | None] = None
@@ -88,6 +91,18 @@ class Learner(ABC):
     @abstractmethod
     def learn(self, interaction: Interaction) -> Iterator[Policy]:
         """Act through ``interaction`` and yield a policy at every hand-over."""
+
+    def state_dict(self) -> dict[str, Any]:
+        """The learner's state at its last hand-over (plain data; pickled into checkpoints).
+
+        A learner with ``supports_resume = True`` must make ``load_state_dict(state_dict())``
+        followed by ``learn(interaction)`` continue exactly after that hand-over.
+        """
+        return {}
+
+    def load_state_dict(self, state: dict[str, Any]) -> None:
+        """Restore :meth:`state_dict` before :meth:`learn` is called (see ``supports_resume``)."""
+        self._resume_state = state
 
     def save_policy(self, policy: Policy, path: Path) -> Path:
         """Write ``policy`` to ``path`` (default: pickle) and return the written path."""

@@ -27,8 +27,9 @@ from typing import Any
 
 import numpy as np
 
+from harness.checkpoint import Checkpoint, global_rng_state, identity_mismatch, load_checkpoint, save_checkpoint, set_global_rng_state
 from harness.discovery import load_learner, load_task
-from harness.errors import BudgetExhaustedError, HarnessError, OptionError
+from harness.errors import BudgetExhaustedError, CheckpointError, HarnessError, OptionError
 from harness.evaluation import Evaluator
 from harness.interaction import Interaction
 from harness.learner import Learner
@@ -150,17 +151,45 @@ def save_episodes(episodes: tuple[Episode, ...] | list[Episode], path: Path) -> 
     return path
 
 
+def run_identity(prep: Prepared) -> dict[str, Any]:
+    """What must be equal for a checkpoint to be resumed: learner, task, seed, options, limits."""
+    cfg = prep.config
+    identity: dict[str, Any] = {
+        "learner": cfg.learner, "task": cfg.task, "seed": cfg.seed, "eval_episodes": cfg.eval_episodes,
+        "max_trials": prep.max_trials, "budget_seconds": prep.budget_seconds,
+    }
+    identity.update({f"task.{k}": v for k, v in prep.task.options.items()})
+    identity.update({f"learner.{k}": v for k, v in prep.learner_options.items()})
+    return identity
+
+
+def _latest_valid_checkpoint(paths: list[Path]) -> Checkpoint:
+    """The checkpoint of the highest trial that loads (a file cut by a crash is skipped)."""
+    errors = []
+    for path in sorted(paths, reverse=True):
+        try:
+            return load_checkpoint(path)
+        except CheckpointError as exc:
+            errors.append(str(exc))
+    detail = f" ({errors[0]})" if errors else ""
+    raise CheckpointError(f"no usable checkpoint in the run{detail}; start a new run without --resume")
+
+
 def run(
     config: RunConfig,
     tracker: Tracker | None = None,
     progress: ProgressReporter | None = None,
     workdir: Path | None = None,
+    resume_run_id: str | None = None,
 ) -> RunResult:
     """Run ``config`` to the end and return its :class:`RunResult`.
 
     The tracker receives params at the start, metrics after every trial, the policy and the
     interaction episodes as artifacts, and the final status: FINISHED (solved or limits
     reached), FAILED (an exception; what was logged is kept) or KILLED (Ctrl-C).
+
+    With ``resume_run_id`` the run continues in that tracked run from its last checkpoint (see
+    :mod:`harness.checkpoint`); the continuation is identical to an uninterrupted run.
     """
     prep = prepare(config)
     tracker = tracker or MemoryTracker()
@@ -168,32 +197,52 @@ def run(
     seeds = derive_seeds(config.seed)
     seed_everything(config.seed)
     spec = prep.task.spec
-
-    tracker.start(
-        experiment=config.task,
-        run_name=f"{config.learner}-{config.task}-s{config.seed}",
-        params=run_params(prep),
-        tags={"learner": config.learner, "task": config.task, "seed": str(config.seed)},
-    )
+    identity = run_identity(prep)
     own_workdir = workdir is None
     workdir = Path(tempfile.mkdtemp(prefix="harness-run-")) if workdir is None else Path(workdir)
     workdir.mkdir(parents=True, exist_ok=True)
 
     learner = prep.learner_cls(spec, prep.learner_options, seed=seeds["learner"])
+    checkpoint: Checkpoint | None = None
+    if resume_run_id is not None:
+        if not prep.learner_cls.supports_resume:
+            raise CheckpointError(f"learner '{config.learner}' cannot resume runs; start a new run without --resume")
+        tracker.resume(resume_run_id)
+        checkpoint = _latest_valid_checkpoint(tracker.fetch_artifacts("checkpoints", workdir / "resume"))
+        mismatch = identity_mismatch(checkpoint.identity, identity)
+        if mismatch:
+            tracker.finish("FAILED")
+            raise CheckpointError(f"run {resume_run_id} was made with other settings ({mismatch}); resume it with the same command")
+    else:
+        tracker.start(
+            experiment=config.task,
+            run_name=f"{config.learner}-{config.task}-s{config.seed}",
+            params=run_params(prep),
+            tags={"learner": config.learner, "task": config.task, "seed": str(config.seed)},
+        )
+
     interaction = Interaction(prep.task.make_env(), spec, budget_seconds=prep.budget_seconds, seed=seeds["interaction"])
     evaluator = Evaluator(prep.task, n_episodes=config.eval_episodes, seed=seeds["evaluation"])
+    history: list[dict[str, float]] = []
+    first_trial, wall_offset = 1, 0.0
+    if checkpoint is not None:
+        interaction.load_state_dict(checkpoint.interaction)
+        learner.load_state_dict(checkpoint.learner)
+        set_global_rng_state(checkpoint.rng)
+        history = [dict(h) for h in checkpoint.history]
+        first_trial = checkpoint.trial + 1
+        wall_offset = history[-1]["wall_seconds"] if history else 0.0
 
     total, unit = (prep.max_trials, "trials") if prep.max_trials else (prep.budget_seconds, "s")
     progress.start(f"{config.learner} on {config.task}", total, unit)
-    start = time.perf_counter()
-    history: list[dict[str, float]] = []
+    start = time.perf_counter() - wall_offset
     solved_at: tuple[float, int] | None = None
     stop_reason = "learner finished"
     status = "FAILED"
     generator = learner.learn(interaction)
     try:
         try:
-            for trial, policy in enumerate(generator, start=1):
+            for trial, policy in enumerate(generator, start=first_trial):
                 result = evaluator(policy)
                 record: dict[str, Any] = {
                     "trial": trial,
@@ -217,6 +266,9 @@ def run(
                 if prep.max_trials is not None and trial >= prep.max_trials:
                     stop_reason = "max trials"
                     break
+                if learner.supports_resume:
+                    _save_checkpoint(tracker, workdir, Checkpoint(
+                        identity, trial, history, interaction.state_dict(), learner.state_dict(), global_rng_state()))
         except BudgetExhaustedError:
             stop_reason = "budget"
         finally:
@@ -251,6 +303,15 @@ def run(
             shutil.rmtree(workdir, ignore_errors=True)
     progress.finish(run_result.summary())
     return run_result
+
+
+def _save_checkpoint(tracker: Tracker, workdir: Path, checkpoint: Checkpoint) -> None:
+    folder = workdir / "checkpoints"
+    folder.mkdir(exist_ok=True)
+    path = save_checkpoint(checkpoint, folder / f"ckpt_trial{checkpoint.trial:03d}.pkl")
+    tracker.log_artifact(path, "checkpoints")
+    previous = folder / f"ckpt_trial{checkpoint.trial - 1:03d}.pkl"
+    previous.unlink(missing_ok=True)  # the tracker keeps its copy; the local one is no longer needed
 
 
 def _log_trial_artifacts(tracker: Tracker, learner: Learner, policy: Any, interaction: Interaction, workdir: Path, trial: int) -> None:

@@ -48,6 +48,10 @@ class Tracker(Protocol):
 
     def finish(self, status: RunStatus) -> None: ...
 
+    def resume(self, run_id: str) -> None: ...
+
+    def fetch_artifacts(self, artifact_path: str, destination: Path) -> list[Path]: ...
+
 
 def _finite(metrics: Mapping[str, float]) -> dict[str, float]:
     """Drop non-finite values (MLflow rejects NaN in some stores; a missing metric is honest)."""
@@ -62,9 +66,13 @@ def _finite(metrics: Mapping[str, float]) -> dict[str, float]:
 
 
 class MemoryTracker:
-    """Keeps everything in memory; for library use and tests."""
+    """Keeps everything in memory (artifacts: copies in a private temporary folder); for library
+    use and tests. ``resume`` continues the same object's run."""
 
     def __init__(self) -> None:
+        import tempfile
+
+        self.root = Path(tempfile.mkdtemp(prefix="harness-memtracker-"))
         self.run_id: str | None = None
         self.experiment: str | None = None
         self.params: dict[str, str] = {}
@@ -89,10 +97,27 @@ class MemoryTracker:
         self.tags.update({k: str(v) for k, v in tags.items()})
 
     def log_artifact(self, path: Path, artifact_path: str | None = None) -> None:
+        import shutil
+
+        folder = self.root / (artifact_path or "")
+        folder.mkdir(parents=True, exist_ok=True)
+        shutil.copy2(path, folder / Path(path).name)
         self.artifacts.append((Path(path), artifact_path))
 
     def finish(self, status: RunStatus) -> None:
         self.status = status
+
+    def resume(self, run_id: str) -> None:
+        if run_id != self.run_id:
+            raise TrackingError(f"no run {run_id!r} in this in-memory tracker")
+        self.status = "RUNNING"
+
+    def fetch_artifacts(self, artifact_path: str, destination: Path) -> list[Path]:
+        import shutil
+
+        source = self.root / artifact_path
+        destination.mkdir(parents=True, exist_ok=True)
+        return [Path(shutil.copy2(f, destination / f.name)) for f in sorted(source.glob("*"))] if source.exists() else []
 
 
 class MlflowTracker:
@@ -165,6 +190,34 @@ class MlflowTracker:
     def finish(self, status: RunStatus) -> None:
         if self.run_id is not None:
             self.client.set_terminated(self.run_id, status)
+
+    def resume(self, run_id: str) -> None:
+        """Continue logging into the existing run ``run_id`` (marked RUNNING again)."""
+        try:
+            self.client.get_run(run_id)
+        except Exception as exc:
+            raise TrackingError(f"no run {run_id!r} in {self.tracking_uri}; check the id (mlflow ui lists runs)") from exc
+        self.run_id = run_id
+        self.client.update_run(run_id, status="RUNNING")
+
+    def fetch_artifacts(self, artifact_path: str, destination: Path) -> list[Path]:
+        """Download the run's artifacts under ``artifact_path`` into ``destination``."""
+        destination.mkdir(parents=True, exist_ok=True)
+        names = [a.path for a in self.client.list_artifacts(self.run_id, artifact_path)]
+        return [Path(self.client.download_artifacts(self.run_id, name, str(destination))) for name in names]
+
+    def find_resumable(self, experiment: str, learner: str, seed: int) -> str | None:
+        """The newest unfinished (RUNNING, FAILED or KILLED) run of ``learner`` with ``seed``."""
+        found = self.client.get_experiment_by_name(experiment)
+        if found is None:
+            return None
+        runs = self.client.search_runs(
+            [found.experiment_id],
+            filter_string=f"params.learner = '{learner}' AND params.seed = '{seed}' AND attributes.status != 'FINISHED'",
+            order_by=["attributes.start_time DESC"],
+            max_results=1,
+        )
+        return runs[0].info.run_id if runs else None
 
 
 def quiet_mlflow_logging() -> None:

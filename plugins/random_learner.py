@@ -37,10 +37,17 @@ class RandomLearner(Learner):
     description = "uniform random controls in the bounds (a baseline that learns nothing)"
     options = (Option("scale", float, 1.0, "fraction of the control bounds to sample from", low=0.0, high=1.0),)
     default_max_trials = 10
+    supports_resume = True
 
     def learn(self, interaction: Interaction) -> Iterator[Policy]:
         scale = self.options["scale"]
-        policy = UniformRandomPolicy(scale * self.spec.action_low, scale * self.spec.action_high, self.seed)
+        self._policy = UniformRandomPolicy(scale * self.spec.action_low, scale * self.spec.action_high, self.seed)
+        resumed = getattr(self, "_resume_state", None)
+        if resumed is not None:
+            self._policy.rng.bit_generator.state = resumed["rng"]
         while True:
-            interaction.rollout(policy)
-            yield policy
+            interaction.rollout(self._policy)
+            yield self._policy
+
+    def state_dict(self) -> dict:
+        return {"rng": self._policy.rng.bit_generator.state}

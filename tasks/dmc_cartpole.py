@@ -137,6 +137,14 @@ class DMCCartpoleEnv(gym.Env):
             return state.copy()
         return state + self.spec_.measurement_noise_std * self.np_random.standard_normal(5)
 
+    def rng_state(self) -> dict[str, Any]:
+        """Both random streams (observation noise and dm_control's task RNG), for checkpoints."""
+        return {"np_random": self.np_random.bit_generator.state, "dm_random": self._dm_random.get_state()}
+
+    def set_rng_state(self, state: dict[str, Any]) -> None:
+        self.np_random.bit_generator.state = state["np_random"]
+        self._dm_random.set_state(state["dm_random"])
+
     def reset(self, *, seed: int | None = None, options: dict[str, Any] | None = None):
         super().reset(seed=seed)
         if seed is not None:

@@ -139,6 +139,7 @@ class Pilco(Learner):
     description = "PILCO: GP dynamics model, exact moment matching, analytic policy gradients (ICML 2011)"
     #: the ablation switch: drop the GP's model-uncertainty term in planning
     mean_only: ClassVar[bool] = False
+    supports_resume = True
     options = (
         Option("controller", str, None, "policy: rbf or linear (default: task preset)", choices=(None, "rbf", "linear")),
         Option("num_centres", int, None, "RBF centres (default: task preset)", low=1),
@@ -217,19 +218,25 @@ class Pilco(Learner):
 
         torch.set_num_threads(self.options["threads"])
         spec, o = self.spec, self.options
-        generator = torch.Generator().manual_seed(self.seed)
         workdir = Path(tempfile.mkdtemp(prefix="pilco-"))
+        model = GPModel(sparse_threshold=self.preset.sparse_threshold, num_pseudo=self.num_pseudo, max_evals_full=o["gp_max_evals"])
+        controller = self._new_controller(torch.Generator().manual_seed(self.seed))
+        resumed = getattr(self, "_resume_state", None)
         try:
-            scale = self.preset.random_scale
-            explore = UniformRandomPolicy(scale * spec.action_low, scale * spec.action_high, self.seed)
-            for _ in range(self.preset.initial_rollouts):
-                interaction.rollout(explore)
-
-            controller = self._new_controller(generator)
-            model = GPModel(sparse_threshold=self.preset.sparse_threshold, num_pseudo=self.num_pseudo, max_evals_full=o["gp_max_evals"])
-            hyperparameters = None
-            trial = 0
+            if resumed is None:
+                scale = self.preset.random_scale
+                explore = UniformRandomPolicy(scale * spec.action_low, scale * spec.action_high, self.seed)
+                for _ in range(self.preset.initial_rollouts):
+                    interaction.rollout(explore)
+                hyperparameters, trial, predicted = None, 0, None
+            else:  # continue right after the hand-over of trial `trial`
+                controller.load_state_dict(resumed["controller"])
+                hyperparameters, trial, predicted = resumed["hyperparameters"], resumed["trial"], resumed["predicted"]
             while True:
+                if trial > 0:  # apply the policy handed over last for one trial, record the data
+                    episode = interaction.rollout(PilcoPolicy(controller, self.layout))
+                    if o["plots"]:
+                        self.artifacts.append(self._plot_prediction(predicted, episode, workdir / f"prediction_trial{trial:03d}.png", trial))
                 trial += 1
                 x, y = transitions(interaction.episodes, self.layout)
                 fit = model.fit(x, y, warm_start=hyperparameters, restarts=o["gp_restarts"], seed=self.seed + trial)
@@ -247,43 +254,55 @@ class Pilco(Learner):
                     objective.set_flat(previous)  # keep the previous policy, say so in the metrics
                     search, failed = None, 1.0
                 predicted = objective.predicted_costs()
-
-                self.metrics = {
-                    "n_data": float(fit.n_points),
-                    "gp_sparse": float(fit.sparse),
-                    "gp_nll": fit.nll,
-                    "model_train_seconds": fit.seconds,
-                    "policy_search_failed": failed,
-                    "predicted_cost": float(predicted[0].sum()),
-                    "policy_parameters": float(objective.num_params),
+                self.metrics = self._trial_metrics(fit, search, failed, predicted, objective.num_params)
+                self.artifacts += self._save_model(workdir, trial, model, fit)
+                self._state = {
+                    "controller": copy.deepcopy(controller.state_dict()),
+                    "hyperparameters": hyperparameters,
+                    "trial": trial,
+                    "predicted": predicted,
                 }
-                if search is not None:
-                    self.metrics.update(
-                        J_before=search.J_before, J_after=search.J_after, policy_opt_seconds=search.seconds,
-                        policy_evaluations=float(search.evaluations), line_searches=float(search.iterations),
-                        policy_failed_evaluations=float(search.failed_evaluations),
-                    )
-                h = fit.hyperparameters
-                for a in range(spec.state_dim):
-                    self.metrics[f"gp_signal_std_{a}"] = float(torch.exp(h.log_alpha[a]))
-                    self.metrics[f"gp_noise_std_{a}"] = float(torch.exp(h.log_sigma[a]))
-                model_path = workdir / f"model_trial{trial:03d}.pt"
-                torch.save({"gp": model.state_dict(), "layout": self.layout, "preset": self.preset}, model_path)
-                hyp_path = workdir / f"gp_hyperparameters_trial{trial:03d}.json"
-                hyp_path.write_text(json.dumps({"length_scales": torch.exp(h.log_ell).tolist(),
-                                                "signal_std": torch.exp(h.log_alpha).tolist(),
-                                                "noise_std": torch.exp(h.log_sigma).tolist(),
-                                                "sparse": fit.sparse, "n_points": fit.n_points}, indent=1))
-                self.artifacts += [model_path, hyp_path]
-
-                policy = PilcoPolicy(copy.deepcopy(controller), self.layout)
-                yield policy
-
-                episode = interaction.rollout(policy)
-                if o["plots"]:
-                    self.artifacts.append(self._plot_prediction(predicted, episode, workdir / f"prediction_trial{trial:03d}.png", trial))
+                yield PilcoPolicy(copy.deepcopy(controller), self.layout)
         finally:
             shutil.rmtree(workdir, ignore_errors=True)
+
+    def state_dict(self) -> dict[str, Any]:
+        """Controller parameters, GP hyperparameters (warm start), trial, pending prediction."""
+        return self._state
+
+    def _trial_metrics(self, fit, search, failed: float, predicted, num_params: int) -> dict[str, float]:
+        metrics = {
+            "n_data": float(fit.n_points),
+            "gp_sparse": float(fit.sparse),
+            "gp_nll": fit.nll,
+            "model_train_seconds": fit.seconds,
+            "policy_search_failed": failed,
+            "predicted_cost": float(predicted[0].sum()),
+            "policy_parameters": float(num_params),
+        }
+        if search is not None:
+            metrics.update(
+                J_before=search.J_before, J_after=search.J_after, policy_opt_seconds=search.seconds,
+                policy_evaluations=float(search.evaluations), line_searches=float(search.iterations),
+                policy_failed_evaluations=float(search.failed_evaluations),
+            )
+        h = fit.hyperparameters
+        for a in range(self.spec.state_dim):
+            metrics[f"gp_signal_std_{a}"] = float(torch.exp(h.log_alpha[a]))
+            metrics[f"gp_noise_std_{a}"] = float(torch.exp(h.log_sigma[a]))
+        return metrics
+
+    def _save_model(self, workdir: Path, trial: int, model: GPModel, fit) -> list[Path]:
+        """The trained GP (state dict, for inspection) and its hyperparameters (readable JSON)."""
+        h = fit.hyperparameters
+        model_path = workdir / f"model_trial{trial:03d}.pt"
+        torch.save({"gp": model.state_dict(), "layout": self.layout, "preset": self.preset}, model_path)
+        hyp_path = workdir / f"gp_hyperparameters_trial{trial:03d}.json"
+        hyp_path.write_text(json.dumps({
+            "length_scales": torch.exp(h.log_ell).tolist(), "signal_std": torch.exp(h.log_alpha).tolist(),
+            "noise_std": torch.exp(h.log_sigma).tolist(), "sparse": fit.sparse, "n_points": fit.n_points,
+        }, indent=1))
+        return [model_path, hyp_path]
 
 
 class PilcoMean(Pilco):

@@ -1,0 +1,87 @@
+"""Aggregate statistics over seeds for times to success, where an unsolved run counts as +inf.
+
+An unsolved run has no time to success; it is censored at the interaction it used. Counting it
+as ``+inf`` keeps it in every statistic instead of dropping it: the median is finite only if
+more than half of the runs solved, the IQM (mean of the middle 50 %) only if at most
+``floor(n / 4)`` runs are unsolved. Sorting-based statistics (median, quantiles without
+interpolation, trimmed means) are exact with ``inf``; means and linear interpolation are not,
+so the confidence intervals use order statistics.
+
+Confidence intervals follow rliable (Agarwal et al., NeurIPS 2021): a percentile bootstrap over
+runs, stratified by task (runs are resampled with replacement within each task, never across),
+with a seeded generator so that a report is reproducible.
+"""
+
+from __future__ import annotations
+
+from collections.abc import Callable, Sequence
+
+import numpy as np
+
+Statistic = Callable[[np.ndarray], np.ndarray]
+
+
+def median(x: np.ndarray) -> np.ndarray:
+    """Median over the last axis; ``(..., n) -> (...)``; exact with ``+inf`` entries."""
+    return np.median(np.asarray(x, dtype=np.float64), axis=-1)
+
+
+def iqm(x: np.ndarray) -> np.ndarray:
+    """Interquartile mean over the last axis: the mean after dropping ``floor(n/4)`` values at
+    each end (``scipy.stats.trim_mean(x, 0.25)``); ``(..., n) -> (...)``; ``+inf`` if an
+    ``inf`` survives the trimming."""
+    x = np.sort(np.asarray(x, dtype=np.float64), axis=-1)
+    n = x.shape[-1]
+    cut = int(0.25 * n)
+    kept = x[..., cut : n - cut]
+    with np.errstate(invalid="ignore"):
+        return kept.mean(axis=-1)
+
+
+def stratified_bootstrap(
+    strata: Sequence[np.ndarray], statistic: Statistic, reps: int = 10_000, seed: int = 0
+) -> np.ndarray:
+    """``reps`` bootstrap replicates of ``statistic`` over the concatenated strata.
+
+    Each replicate draws ``len(s)`` runs with replacement from every stratum ``s`` (e.g. the
+    seeds of one task) and applies ``statistic`` (last-axis reducer) to their concatenation.
+    Returns ``(reps,)``.
+    """
+    rng = np.random.default_rng(seed)
+    parts = []
+    for s in strata:
+        s = np.asarray(s, dtype=np.float64)
+        if s.size == 0:
+            continue
+        parts.append(s[rng.integers(0, s.size, size=(reps, s.size))])
+    if not parts:
+        return np.full(reps, np.nan)
+    return statistic(np.concatenate(parts, axis=1))
+
+
+def bootstrap_ci(
+    strata: Sequence[np.ndarray] | np.ndarray,
+    statistic: Statistic,
+    confidence: float = 0.95,
+    reps: int = 10_000,
+    seed: int = 0,
+) -> tuple[float, float]:
+    """Percentile bootstrap interval ``(low, high)`` of ``statistic`` (rliable-style, stratified).
+
+    ``strata`` is one array of runs or a list of arrays (one per task). The bounds are order
+    statistics of the replicates (``method="lower"`` / ``"higher"``, i.e. no interpolation, exact
+    with ``inf`` and never narrower than the interpolated interval).
+    """
+    if isinstance(strata, np.ndarray):
+        strata = [strata]
+    replicates = stratified_bootstrap(strata, statistic, reps, seed)
+    alpha = (1.0 - confidence) / 2.0
+    low = float(np.quantile(replicates, alpha, method="lower"))
+    high = float(np.quantile(replicates, 1.0 - alpha, method="higher"))
+    return low, high
+
+
+def times_with_failures(solved: Sequence[bool], times: Sequence[float | None]) -> np.ndarray:
+    """Times to success with every unsolved run as ``+inf`` (never dropped); ``(n,)``."""
+    out = np.array([t if ok and t is not None else np.inf for ok, t in zip(solved, times)], dtype=np.float64)
+    return out

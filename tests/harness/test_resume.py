@@ -1,0 +1,122 @@
+"""Checkpoints and resume: a run continued after an interruption equals an uninterrupted one."""
+
+from __future__ import annotations
+
+import os
+import signal
+import subprocess
+import sys
+import time
+from pathlib import Path
+
+import pytest
+
+from harness.checkpoint import Checkpoint, load_checkpoint, save_checkpoint
+from harness.errors import CheckpointError
+from harness.runner import RunConfig, run
+from harness.tracking import MemoryTracker
+
+PILCO_TINY = {"num_centres": "4", "policy_max_evaluations": "6", "gp_max_evals": "20", "plots": "false"}
+NOT_WALL = lambda history: [{k: v for k, v in r.items() if "seconds" not in k or k == "interaction_seconds"} for r in history]
+
+
+class InterruptAt(MemoryTracker):
+    """Raises KeyboardInterrupt when trial ``step`` is logged (after its evaluation, before its checkpoint)."""
+
+    def __init__(self, step: int) -> None:
+        super().__init__()
+        self.step = step
+
+    def log_metrics(self, metrics, step):
+        if step == self.step and "eval_success_rate" in metrics:
+            self.step = -1
+            raise KeyboardInterrupt
+        super().log_metrics(metrics, step)
+
+
+@pytest.mark.parametrize(
+    "learner,options,task_options",
+    [("random", {}, {}), ("pilco", PILCO_TINY, {"horizon": 10})],
+)
+def test_resumed_run_equals_uninterrupted_run(learner, options, task_options):
+    config = RunConfig(learner, "cartpole", seed=4, learner_options=options, task_options=task_options, max_trials=4, eval_episodes=2)
+    reference = run(config)
+
+    tracker = InterruptAt(3)
+    with pytest.raises(KeyboardInterrupt):
+        run(config, tracker=tracker)
+    assert tracker.status == "KILLED"
+    resumed = run(config, tracker=tracker, resume_run_id=tracker.run_id)
+    assert tracker.status == "FINISHED"
+    assert NOT_WALL(resumed.history) == NOT_WALL(reference.history)
+    assert resumed.interaction_seconds == reference.interaction_seconds
+    assert [s for s, _ in tracker.metrics["eval_cost"]] == [1, 2, 3, 4]
+
+
+def test_resume_refuses_other_settings():
+    config = RunConfig("random", "cartpole", seed=1, max_trials=3, eval_episodes=1)
+    tracker = InterruptAt(3)
+    with pytest.raises(KeyboardInterrupt):
+        run(config, tracker=tracker)
+    other = RunConfig("random", "cartpole", seed=1, max_trials=3, eval_episodes=1, learner_options={"scale": "0.5"})
+    with pytest.raises(CheckpointError, match="learner.scale: checkpoint 1.0 vs now 0.5"):
+        run(other, tracker=tracker, resume_run_id=tracker.run_id)
+
+
+def test_corrupt_checkpoint_is_detected(tmp_path):
+    path = save_checkpoint(Checkpoint({"a": 1}, 1, [], {}, {}), tmp_path / "ckpt_trial001.pkl")
+    assert load_checkpoint(path).trial == 1
+    blob = path.read_bytes()
+    path.write_bytes(blob[: len(blob) // 2])
+    with pytest.raises(CheckpointError, match="corrupt"):
+        load_checkpoint(path)
+    (tmp_path / "junk.pkl").write_bytes(b"not a checkpoint")
+    with pytest.raises(CheckpointError, match="not a harness checkpoint"):
+        load_checkpoint(tmp_path / "junk.pkl")
+
+
+def _metric_history(uri: str, run_id: str, key: str) -> list[float]:
+    import mlflow
+
+    by_step = {m.step: m.value for m in sorted(mlflow.MlflowClient(uri).get_metric_history(run_id, key), key=lambda m: m.timestamp)}
+    return [by_step[s] for s in sorted(by_step)]  # a trial logged again after the resume counts once
+
+
+def test_sigkill_mid_trial_then_resume_matches_uninterrupted(tmp_path, mlflow_uri):
+    """A real `harness bench` process killed with SIGKILL during trial 3 is resumed with --resume."""
+    import mlflow
+
+    args = ["bench", "-l", "pilco", "-t", "cartpole", "--seed", "9", "--max-trials", "5", "--eval-episodes", "2",
+            "--tracking-uri", mlflow_uri, "--set", "horizon=10"] + sum((["--set", f"{k}={v}"] for k, v in PILCO_TINY.items()), [])
+    env = dict(os.environ, PYTHONUNBUFFERED="1")
+    proc = subprocess.Popen([sys.executable, "-m", "harness", *args], cwd=tmp_path, env=env, stderr=subprocess.PIPE, stdout=subprocess.PIPE, text=True)
+    deadline = time.time() + 240
+    seen = ""
+    while time.time() < deadline:
+        line = proc.stderr.readline()
+        seen += line
+        if "trial 2/5" in line:
+            break
+    else:
+        proc.kill()
+        pytest.fail(f"the run did not reach trial 2 in time: {seen}")
+    time.sleep(0.5)  # now inside trial 3 (its rollout / model learning)
+    proc.send_signal(signal.SIGKILL)
+    proc.wait(timeout=30)
+
+    mlflow.set_tracking_uri(mlflow_uri)
+    killed = mlflow.search_runs(experiment_names=["cartpole"], filter_string="params.seed = '9' AND params.learner = 'pilco'")
+    assert len(killed) == 1 and killed.iloc[0]["status"] == "RUNNING"  # SIGKILL: nobody marked it
+    run_id = killed.iloc[0]["run_id"]
+
+    resumed = subprocess.run([sys.executable, "-m", "harness", *args, "--resume"], cwd=tmp_path, capture_output=True, text=True, timeout=600)
+    assert resumed.returncode == 0, resumed.stderr
+    assert run_id in resumed.stdout  # the same run continued
+
+    reference = subprocess.run([sys.executable, "-m", "harness", *args, "--quiet"], cwd=tmp_path, capture_output=True, text=True, timeout=600)
+    assert reference.returncode == 0, reference.stderr
+    runs = mlflow.search_runs(experiment_names=["cartpole"], filter_string="params.seed = '9' AND params.learner = 'pilco'")
+    assert len(runs) == 2 and set(runs["status"]) == {"FINISHED"}
+    ref_id = next(r for r in runs["run_id"] if r != run_id)
+    for key in ("eval_cost", "interaction_seconds", "J_after", "eval_success_rate"):
+        assert _metric_history(mlflow_uri, run_id, key) == _metric_history(mlflow_uri, ref_id, key), key
