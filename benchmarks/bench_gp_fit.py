@@ -40,7 +40,11 @@ def make_data(n: int, d: int = 6, e: int = 4, seed: int = 0) -> tuple[torch.Tens
 
 
 def bench_fit(sizes: list[int]) -> None:
-    print("GPModel.fit (defaults: sparse_threshold=300, num_pseudo=300, max_evals_full=300, max_evals_fitc=300)")
+    d = GPModel()
+    print(
+        f"GPModel.fit (defaults: sparse_threshold={d.sparse_threshold}, num_pseudo={d.num_pseudo}, "
+        f"max_evals_full={d.max_evals_full}, max_evals_fitc={d.max_evals_fitc} x{d.fitc_first_factor} first time)"
+    )
     print(f"{'n':>6} {'sparse':>6} {'n_hyp':>6} {'evals':>6} {'seconds':>8}  first fit / warm-started refit with +10% data")
     for n in sizes:
         x, y = make_data(int(n * 1.1))

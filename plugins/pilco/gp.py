@@ -235,13 +235,18 @@ def predict_latent(posterior: GPPosterior, test_inputs: torch.Tensor) -> tuple[t
 
 @dataclass
 class MinimiseResult:
-    """Outcome of :func:`minimise_lbfgsb`: ``x`` (flat), objective value, counts, scipy message."""
+    """Outcome of :func:`minimise_lbfgsb`: best ``x`` (flat), its objective value, evaluation and
+    iteration counts (iterations -1 if stopped by a numerical failure), termination message."""
 
     x: torch.Tensor
     value: float
     evaluations: int
     iterations: int
     message: str
+
+
+class _TrialPointFailed(Exception):
+    """Internal: the objective failed at an L-BFGS-B trial point (not the start)."""
 
 
 def minimise_lbfgsb(
@@ -253,10 +258,12 @@ def minimise_lbfgsb(
 ) -> MinimiseResult:
     """Minimise a scalar torch function of a flat float64 vector with scipy's L-BFGS-B.
 
-    Gradients come from autograd. A trial point where the objective is non-finite or a
-    Cholesky factorisation fails counts as ``+inf`` (the line search backs off); at the starting
-    point the :class:`NumericalError` propagates. ``max_evals`` bounds function evaluations
-    (0: just evaluate at ``x0``).
+    Gradients come from autograd. Returns the best point evaluated. If the objective fails at a
+    trial point (non-finite value or gradient, or a Cholesky :class:`NumericalError`) the
+    optimisation stops there and the best point so far is returned (L-BFGS-B has no safe way to
+    continue: ``inf`` makes it report convergence, a made-up value misleads its line search); at
+    the starting point the :class:`NumericalError` propagates. ``max_evals`` bounds function
+    evaluations (0: just evaluate at ``x0``).
     """
     x0_np = x0.detach().cpu().numpy().astype(np.float64).copy()
     bounds = None
@@ -265,6 +272,7 @@ def minimise_lbfgsb(
         x0_np = np.clip(x0_np, lo, hi)
         bounds = list(zip(lo.tolist(), hi.tolist()))
     count = [0]
+    best: dict = {"x": x0_np.copy(), "f": math.inf}
 
     def fun(x_np: np.ndarray) -> tuple[float, np.ndarray]:
         count[0] += 1
@@ -275,12 +283,14 @@ def minimise_lbfgsb(
         except NumericalError:
             if count[0] == 1:
                 raise
-            return math.inf, np.zeros_like(x_np)
+            raise _TrialPointFailed() from None
         v = float(value.detach())
         if not math.isfinite(v) or not bool(torch.isfinite(grad).all()):
             if count[0] == 1:
-                raise NumericalError("the GP training objective is not finite at the starting hyperparameters")
-            return math.inf, np.zeros_like(x_np)
+                raise NumericalError("the GP training objective is not finite at the starting point")
+            raise _TrialPointFailed()
+        if v < best["f"]:
+            best["x"], best["f"] = x_np.copy(), v
         return v, grad.numpy().copy()
 
     if max_evals <= 0:
@@ -288,16 +298,21 @@ def minimise_lbfgsb(
         return MinimiseResult(torch.tensor(x0_np, dtype=DTYPE), value, 1, 0, "no optimisation (budget 0)")
     # scipy's L-BFGS-B calls BLAS on tiny vectors; a multi-threaded OpenBLAS there cost ~3 ms per
     # iteration (more than a whole n = 100 GP evaluation) on a loaded 2-core machine.
-    with threadpool_limits(limits=1, user_api="blas"):
-        res = scipy.optimize.minimize(
-            fun,
-            x0_np,
-            jac=True,
-            method="L-BFGS-B",
-            bounds=bounds,
-            options={"maxfun": max_evals, "maxiter": max_evals},
-        )
-    return MinimiseResult(torch.tensor(res.x, dtype=DTYPE), float(res.fun), count[0], int(res.nit), str(res.message))
+    try:
+        with threadpool_limits(limits=1, user_api="blas"):
+            res = scipy.optimize.minimize(
+                fun,
+                x0_np,
+                jac=True,
+                method="L-BFGS-B",
+                bounds=bounds,
+                options={"maxfun": max_evals, "maxiter": max_evals},
+            )
+        iterations, message = int(res.nit), str(res.message)
+    except _TrialPointFailed:
+        iterations = -1
+        message = f"STOPPED: numerical failure at trial point {count[0]}; best point so far returned"
+    return MinimiseResult(torch.tensor(best["x"], dtype=DTYPE), best["f"], count[0], iterations, message)
 
 
 def _pack(h: GPHyperparameters) -> torch.Tensor:
@@ -554,7 +569,7 @@ class GPModel:
             hyp, per_output, res = optimise_hyperparameters(x_h, y_h, start_hyp, floor, budget, self.curb)
             runs.append((hyp, per_output))
             evaluations += res.evaluations
-            iterations += res.iterations
+            iterations += max(res.iterations, 0)
             messages.append(f"hyperparameters run {r}: {res.message}")
         restart_nlls = torch.stack([p for _, p in runs])  # (R+1, E)
         best = restart_nlls.argmin(0)  # (E,)
@@ -580,7 +595,7 @@ class GPModel:
             best_hyp.pseudo_inputs = z
             fitc_nll = float(fitc_per_output.sum())
             evaluations += res.evaluations
-            iterations += res.iterations
+            iterations += max(res.iterations, 0)
             messages.append(f"pseudo-inputs: {res.message}")
 
         self._inputs, self._targets, self._hyp = x, y, best_hyp

@@ -234,6 +234,14 @@ def test_degenerate_data_train_and_predict_finite():
     np.testing.assert_allclose(mean[:5].numpy(), [[3.0, 0.0]] * 5, atol=1e-2)
     assert float(var.min()) > -1e-8
 
+    # the same data through FITC: pseudo-inputs start on duplicated points (singular K_mm)
+    sparse = GPModel(sparse_threshold=20, num_pseudo=12, max_evals_full=100, max_evals_fitc=30)
+    report = sparse.fit(x, y, seed=1)
+    assert report.sparse and math.isfinite(report.fitc_nll)
+    mean, var = sparse.predict(xs)
+    assert bool(torch.isfinite(mean).all()) and bool(torch.isfinite(var).all())
+    np.testing.assert_allclose(mean[:5].numpy(), [[3.0, 0.0]] * 5, atol=5e-2)
+
 
 def test_non_finite_data_raise_numerical_error():
     x = torch.randn(10, 2, dtype=DT)
@@ -241,6 +249,41 @@ def test_non_finite_data_raise_numerical_error():
     y[3, 0] = float("nan")
     with pytest.raises(NumericalError):
         GPModel().fit(x, y)
+
+
+def test_cholesky_failures_during_training(monkeypatch):
+    """A failure at the start is a NumericalError; a failure at a later trial point stops the run
+    with the best point evaluated so far."""
+    import plugins.pilco.gp as gp_module
+
+    x, y = gp_sample(40, 1, [0.8], [1.0], 0.05, seed=17)
+    calls = [0]
+    real = gp_module.cholesky
+
+    def failing_from(first, last):
+        def chol(matrix, what="matrix"):
+            calls[0] += 1
+            if first <= calls[0] <= last:
+                raise NumericalError(f"injected failure of the {what}")
+            return real(matrix, what)
+
+        return chol
+
+    monkeypatch.setattr(gp_module, "cholesky", failing_from(1, 10**9))
+    with pytest.raises(NumericalError, match="injected"):
+        GPModel().fit(x, y)
+
+    calls[0] = 0
+    monkeypatch.setattr(gp_module, "cholesky", failing_from(6, 6))
+    report = GPModel().fit(x, y)
+    assert calls[0] > 6 and "STOPPED" in report.messages[0]
+    assert report.evaluations == 6
+    monkeypatch.setattr(gp_module, "cholesky", real)
+    with torch.no_grad():
+        start = penalised_nll(x, y, gp_module.initial_hyperparameters(x, y))
+        got = penalised_nll(x, y, report.hyperparameters)
+    assert math.isfinite(report.nll) and float(got.sum()) == pytest.approx(report.nll, rel=1e-12)
+    assert report.nll < float(start.sum()) - 1.0  # the five good evaluations were not wasted
 
 
 def test_restarts_keep_the_best_run_per_output():
