@@ -10,6 +10,7 @@ run per (learner, task, seed). Browse with::
 
 from __future__ import annotations
 
+import contextlib
 import logging
 import math
 import os
@@ -226,6 +227,28 @@ def quiet_mlflow_logging() -> None:
         logging.getLogger(name).setLevel(logging.WARNING)
 
 
+@contextlib.contextmanager
+def _store_lock(tracking_uri: str):
+    """Serialise the opening of a local SQLite store across processes.
+
+    Two processes creating a fresh ``mlflow.db`` at once race in MLflow's schema migration
+    ("table alembic_version already exists"); an exclusive ``flock`` on ``<db>.lock`` while the
+    store is opened (and, if new, created) makes the second wait for the first.
+    """
+    if not tracking_uri.startswith("sqlite:///"):
+        yield
+        return
+    import fcntl
+
+    lock_path = Path(tracking_uri[len("sqlite:///"):] + ".lock")
+    with open(lock_path, "a") as fh:
+        fcntl.flock(fh, fcntl.LOCK_EX)
+        try:
+            yield
+        finally:
+            fcntl.flock(fh, fcntl.LOCK_UN)
+
+
 def open_client(tracking_uri: str):
     """An ``MlflowClient`` for ``tracking_uri``; a :class:`TrackingError` with the fix if it fails."""
     quiet_mlflow_logging()
@@ -239,12 +262,14 @@ def open_client(tracking_uri: str):
     try:
         import warnings
 
-        with warnings.catch_warnings():
+        with warnings.catch_warnings(), _store_lock(tracking_uri):
             warnings.simplefilter("ignore")
             from mlflow.tracking import MlflowClient
 
             client = MlflowClient(tracking_uri=tracking_uri)
             client.search_experiments(max_results=1)  # opens (and if new, creates) the store
+    except TrackingError:
+        raise
     except Exception as exc:
         raise TrackingError(
             f"cannot open the tracking store {tracking_uri} ({type(exc).__name__}: {str(exc).splitlines()[0] if str(exc) else ''}); "

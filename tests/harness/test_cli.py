@@ -120,3 +120,21 @@ def test_eval_tests_a_saved_policy_and_logs_to_the_run(tmp_path, mlflow_uri):
     assert run.data.metrics["test_success_rate"] == 0.0 and run.data.metrics["test_episodes"] == 12
     missing = CliRunner().invoke(main, ["eval", "no-such-run", "--tracking-uri", mlflow_uri])
     assert missing.exit_code == 2 and "no run 'no-such-run'" in missing.output
+
+
+def test_two_bench_processes_on_one_fresh_store(tmp_path):
+    """Both runs complete and are recorded (the store's creation is serialised by a file lock)."""
+    uri = f"sqlite:///{tmp_path / 'fresh.db'}"
+    procs = [
+        subprocess.Popen([*HARNESS, "bench", "-l", "random", "-t", "cartpole", "--seed", str(s), "--max-trials", "2",
+                          "--eval-episodes", "1", "--tracking-uri", uri, "-q"], cwd=tmp_path, stdout=subprocess.PIPE,
+                         stderr=subprocess.PIPE, text=True)
+        for s in (0, 1)
+    ]
+    outs = [p.communicate(timeout=300) for p in procs]
+    assert [p.returncode for p in procs] == [0, 0], [o[1][-500:] for o in outs]
+    import mlflow
+
+    mlflow.set_tracking_uri(uri)
+    runs = mlflow.search_runs(experiment_names=["cartpole"])
+    assert sorted(runs["params.seed"]) == ["0", "1"] and set(runs["status"]) == {"FINISHED"}
