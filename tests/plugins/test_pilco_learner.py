@@ -60,3 +60,12 @@ class TestPilcoConformance(LearnerConformance):
     task_name = "cartpole"
     task_options = {"horizon": 10}
     learner_options = {"num_centres": 3, "policy_max_evaluations": 3, "gp_max_evals": 10, "plots": False}
+
+
+def test_same_seed_gives_identical_metrics():
+    config = RunConfig("pilco", "cartpole", seed=3, learner_options=TINY, task_options={"horizon": 10}, max_trials=2, eval_episodes=2)
+    a, b = run(config), run(config)
+    strip = lambda h: [{k: v for k, v in r.items() if "seconds" not in k or k == "interaction_seconds"} for r in h]
+    assert strip(a.history) == strip(b.history)
+    c = run(RunConfig("pilco", "cartpole", seed=4, learner_options=TINY, task_options={"horizon": 10}, max_trials=2, eval_episodes=2))
+    assert strip(c.history) != strip(a.history)
