@@ -88,6 +88,37 @@ class _Workspace:
         return self.scratch
 
 
+def _contract_forward(left, right, w_left, w_right, inv_k, workspace: _Workspace, slot: int | None):
+    """``Q = exp(left @ right^T)`` (into a workspace buffer), ``quad``, ``trace``; returns them and ``Q w_right``."""
+    p, n = left.shape[0], left.shape[1]
+    Q = workspace.q_buffer(slot, (p, n, n), left.dtype)
+    torch.bmm(left, right.mT, out=Q)
+    Q.exp_()
+    q_wr = torch.bmm(Q, w_right[..., None]).squeeze(-1)  # (P, n)
+    quad = (q_wr * w_left).sum(-1)
+    e = inv_k.shape[0]
+    trace = torch.linalg.vecdot(inv_k.reshape(e, n * n), Q[:e].reshape(e, n * n))
+    return quad, trace, Q, q_wr
+
+
+def _contract_backward(left, right, w_left, w_right, inv_k, Q, q_wr, g_quad, g_trace, workspace: _Workspace, needs):
+    """Gradients of :func:`_contract_forward` wrt ``(left, right, w_left, w_right, inv_k)`` (``None`` where not needed)."""
+    e = inv_k.shape[0]
+    if g_quad is None:
+        g_quad = torch.zeros(Q.shape[0], dtype=Q.dtype)
+    G = workspace.scratch_buffer(tuple(Q.shape), Q.dtype)
+    torch.bmm((w_left * g_quad[:, None])[:, :, None], w_right[:, None, :], out=G)  # dL/dQ
+    if e > 0 and g_trace is not None:
+        G[:e].addcmul_(inv_k, g_trace[:, None, None])
+    G.mul_(Q)  # dL/d(exponent)
+    grad_left = torch.bmm(G, right) if needs[0] else None
+    grad_right = torch.bmm(left.mT, G).mT if needs[1] else None
+    grad_wl = g_quad[:, None] * q_wr if needs[2] else None
+    grad_wr = g_quad[:, None] * torch.bmm(w_left[:, None, :], Q).squeeze(1) if needs[3] else None
+    grad_inv = g_trace[:, None, None] * Q[:e] if (needs[4] and g_trace is not None) else None
+    return grad_left, grad_right, grad_wl, grad_wr, grad_inv
+
+
 class _ExpBilinearContraction(torch.autograd.Function):
     """``Q_p = exp(left_p @ right_p^T)`` contracted, with a hand-written backward.
 
@@ -102,14 +133,7 @@ class _ExpBilinearContraction(torch.autograd.Function):
 
     @staticmethod
     def forward(ctx, left, right, w_left, w_right, inv_k, workspace, slot):
-        p, n = left.shape[0], left.shape[1]
-        Q = workspace.q_buffer(slot, (p, n, n), left.dtype)
-        torch.bmm(left, right.mT, out=Q)
-        Q.exp_()
-        q_wr = torch.bmm(Q, w_right[..., None]).squeeze(-1)  # (P, n)
-        quad = (q_wr * w_left).sum(-1)
-        e = inv_k.shape[0]
-        trace = torch.linalg.vecdot(inv_k.reshape(e, n * n), Q[:e].reshape(e, n * n))
+        quad, trace, Q, q_wr = _contract_forward(left, right, w_left, w_right, inv_k, workspace, slot)
         ctx.save_for_backward(left, right, w_left, w_right, inv_k, Q, q_wr)
         ctx.workspace = workspace
         return quad, trace
@@ -117,25 +141,9 @@ class _ExpBilinearContraction(torch.autograd.Function):
     @staticmethod
     @torch.autograd.function.once_differentiable
     def backward(ctx, g_quad, g_trace):
-        left, right, w_left, w_right, inv_k, Q, q_wr = ctx.saved_tensors
-        e = inv_k.shape[0]
-        if g_quad is None:
-            g_quad = torch.zeros(Q.shape[0], dtype=Q.dtype)
-        G = ctx.workspace.scratch_buffer(tuple(Q.shape), Q.dtype)
-        torch.bmm((w_left * g_quad[:, None])[:, :, None], w_right[:, None, :], out=G)  # dL/dQ
-        if e > 0 and g_trace is not None:
-            G[:e].addcmul_(inv_k, g_trace[:, None, None])
-        G.mul_(Q)  # dL/d(exponent)
-        grad_left = torch.bmm(G, right) if ctx.needs_input_grad[0] else None
-        grad_right = torch.bmm(left.mT, G).mT if ctx.needs_input_grad[1] else None
-        grad_wl = g_quad[:, None] * q_wr if ctx.needs_input_grad[2] else None
-        grad_wr = None
-        if ctx.needs_input_grad[3]:
-            grad_wr = g_quad[:, None] * torch.bmm(w_left[:, None, :], Q).squeeze(1)
-        grad_inv = None
-        if ctx.needs_input_grad[4] and g_trace is not None:
-            grad_inv = g_trace[:, None, None] * Q[:e]
-        return grad_left, grad_right, grad_wl, grad_wr, grad_inv, None, None
+        saved = ctx.saved_tensors
+        grads = _contract_backward(*saved, g_quad, g_trace, ctx.workspace, ctx.needs_input_grad[:5])
+        return (*grads, None, None)
 
 
 class MomentMatchingGP:
@@ -144,6 +152,11 @@ class MomentMatchingGP:
     Everything that depends only on the posterior (scales, pair selections, ``X Lambda^-1``) is
     computed once here; build one per policy evaluation (for the RBF policy: once per J, inside
     the autograd graph, so gradients reach its parameters), then call :meth:`predict` per step.
+
+    Two code paths with the same forward arithmetic: if no posterior tensor requires a gradient
+    (the dynamics model during policy optimisation), gradients wrt ``(m, S)`` come from a
+    hand-derived backward pass (:class:`_FixedPosteriorMoments`, about a third of the operator
+    calls of autograd); otherwise autograd differentiates everything (the RBF policy).
     """
 
     def __init__(self, posterior: GPPosterior) -> None:
@@ -170,6 +183,9 @@ class MomentMatchingGP:
         self.beta_a, self.beta_b = beta[first], beta[second]
         self.inv_k = posterior.inv_k.contiguous()
         self.workspace = _Workspace()
+        self.fixed = not any(
+            t.requires_grad for t in (posterior.inputs, posterior.beta, posterior.inv_k, posterior.log_ell, posterior.log_alpha)
+        )
 
     def predict(
         self, m: torch.Tensor, S: torch.Tensor, mean_only: bool = False, slot: int | None = None
@@ -180,6 +196,14 @@ class MomentMatchingGP:
         integer (e.g. the time step of a rollout) to keep the ``(P, n, n)`` work buffer of this call
         for reuse by the next call with the same slot (see :class:`_Workspace`); ``None`` allocates.
         """
+        if self.fixed and (m.requires_grad or S.requires_grad) and torch.is_grad_enabled():
+            return _FixedPosteriorMoments.apply(m, S, self, mean_only, slot)
+        return self._forward(m, S, mean_only, slot, contract=None)[0]
+
+    def _forward(self, m, S, mean_only, slot, contract):
+        """The moment-matching arithmetic; ``contract=None`` uses the autograd Function for the
+        exp-contraction, otherwise the plain forward (inside :class:`_FixedPosteriorMoments`).
+        Returns ``((M, V, C), intermediates)``."""
         e = self.num_outputs
         d = m.shape[0]
         eye = torch.eye(d, dtype=S.dtype, device=S.device)
@@ -206,19 +230,92 @@ class MomentMatchingGP:
         za = self.X_a - m * self.inv_lam_a[:, None, :]  # (P, n, d)  Lambda_a^-1 nu_i
         zb = self.X_b - m * self.inv_lam_b[:, None, :]  # (P, n, d)  Lambda_b^-1 nu_j
         za_t = za @ T
+        zb_t = zb @ T
         log_k = self.log_alpha2[:, None] - 0.5 * sq  # (E, n)  log k_a(X_i, m)
         u = log_k[self.first] + (za_t * za).sum(-1) - half_logdet[e:, None]  # (P, n)
-        v = log_k[self.second] + (zb @ T * zb).sum(-1)  # (P, n)
+        v = log_k[self.second] + (zb_t * zb).sum(-1)  # (P, n)
         ones = torch.ones_like(u)[..., None]
         # exponent_ij = 2 a_i^T T b_j + u_i + v_j = log Q_ij  (expanded bilinear form, one product)
         left = torch.cat([2.0 * za_t, u[..., None], ones], dim=-1)  # (P, n, d + 2)
         right = torch.cat([zb, ones, v[..., None]], dim=-1)  # (P, n, d + 2)
         inv_k = self.inv_k[:0] if mean_only else self.inv_k
-        quad, trace = _ExpBilinearContraction.apply(left, right, self.beta_a, self.beta_b, inv_k, self.workspace, slot)
+        if contract is None:
+            quad, trace = _ExpBilinearContraction.apply(left, right, self.beta_a, self.beta_b, inv_k, self.workspace, slot)
+            saved = None
+        else:
+            quad, trace, Q, q_wr = contract(left, right, self.beta_a, self.beta_b, inv_k, self.workspace, slot)
+            saved = (b_inv, nu_s, t, lb, za, zb, za_t, zb_t, left, right, inv_k, Q, q_wr, M, T)
         V = quad[self.full].reshape(e, e) - M[:, None] * M[None, :]
         if not mean_only:
             V = V + torch.diag(self.alpha2 - trace)
+        return (M, V, C), saved
+
+    def _backward(self, saved, gM, gV, gC, mean_only, workspace):
+        """Hand-derived gradients of ``(M, V, C)`` wrt ``(m, S)`` for a fixed posterior."""
+        b_inv, nu_s, t, lb, za, zb, za_t, zb_t, left, right, inv_k, Q, q_wr, M, T = saved
+        e, d = self.num_outputs, nu_s.shape[-1]
+        # V = quad[full] - M M^T + diag(alpha2 - trace)
+        g_quad = torch.zeros(self.first.shape[0], dtype=gV.dtype).index_add_(0, self.full, gV.reshape(-1))
+        g_trace = None if mean_only else -torch.diagonal(gV)
+        gM = gM - (gV + gV.T) @ M
+        grad_left, grad_right, _, _, _ = _contract_backward(
+            left, right, self.beta_a, self.beta_b, inv_k, Q, q_wr, g_quad, g_trace, workspace, (True, True, False, False, False)
+        )
+        # left = [2 za T, u, 1], right = [zb, 1, v]
+        g_zaT = 2.0 * grad_left[..., :d]  # dL/d(za T)
+        g_u = grad_left[..., d]  # (P, n)
+        g_zb = grad_right[..., :d]
+        g_v = grad_right[..., d + 1]
+        # u = log_k[first] + za^T T za - hl_p ;  v = log_k[second] + zb^T T zb
+        g_za = g_zaT @ T + 2.0 * g_u[..., None] * za_t
+        g_zb = g_zb + 2.0 * g_v[..., None] * zb_t
+        g_T = za.mT @ g_zaT + za.mT @ (g_u[..., None] * za) + zb.mT @ (g_v[..., None] * zb)  # (P, d, d)
+        g_logk = torch.zeros(e, g_u.shape[1], dtype=g_u.dtype).index_add_(0, self.first, g_u).index_add_(0, self.second, g_v)
+        g_hl = torch.cat([torch.zeros(e, dtype=g_u.dtype), -g_u.sum(-1)])  # (E + P,)
+        # za = X_a - m la_a, zb = X_b - m la_b
+        g_m = -(g_za.sum(1) * self.inv_lam_a).sum(0) - (g_zb.sum(1) * self.inv_lam_b).sum(0)
+        # mean part: C[:, a] = iL_a * (lb_a @ t_a),  M = sum lb,  lb = exp(log_q) beta
+        w = gC.T * self.inv_ell  # (E, d)
+        g_lb = gM[:, None] + (t @ w[..., None]).squeeze(-1)  # (E, n)
+        g_t = lb[..., None] * w[:, None, :]
+        g_logq = g_lb * lb
+        g_hl[:e] = -g_logq.sum(-1)
+        # log_q = la2 - hl_a - 1/2 nu_s . t ;  log_k = la2 - 1/2 |nu_s|^2
+        g_nu = -0.5 * g_logq[..., None] * t - g_logk[..., None] * nu_s
+        g_t = g_t - 0.5 * g_logq[..., None] * nu_s
+        # t = nu_s @ B_a^-1
+        g_nu = g_nu + g_t @ b_inv[:e]
+        g_binv = torch.cat([nu_s.mT @ g_t, -0.5 * g_T * self.inv_dd], dim=0)  # (E + P, d, d)
+        g_m = g_m - (g_nu.sum(1) * self.inv_ell).sum(0)
+        # B^-1 and 1/2 log|B| of B = scale_outer * S + I
+        g_B = -b_inv @ g_binv @ b_inv + 0.5 * g_hl[:, None, None] * b_inv
+        g_S = (g_B * self.scale_outer).sum(0)
+        # S enters through a Cholesky factorisation, which reads it as symmetric: return the
+        # symmetric gradient (torch's convention for linalg.cholesky, so both paths agree)
+        return g_m, 0.5 * (g_S + g_S.T)
+
+
+class _FixedPosteriorMoments(torch.autograd.Function):
+    """:meth:`MomentMatchingGP.predict` for a posterior without gradients: forward without an
+    autograd graph, backward hand-derived (tested against the autograd path)."""
+
+    @staticmethod
+    def forward(ctx, m, S, gp: MomentMatchingGP, mean_only: bool, slot):
+        (M, V, C), saved = gp._forward(m, S, mean_only, slot, contract=_contract_forward)
+        ctx.gp, ctx.mean_only, ctx.saved = gp, mean_only, saved
+        ctx.save_for_backward(saved[11])  # Q: version-checked against work-buffer reuse
         return M, V, C
+
+    @staticmethod
+    @torch.autograd.function.once_differentiable
+    def backward(ctx, gM, gV, gC):
+        ctx.saved_tensors  # raises if the work buffer was reused since the forward pass
+        gp = ctx.gp
+        gM = torch.zeros(gp.num_outputs, dtype=gp.beta.dtype) if gM is None else gM
+        gV = torch.zeros(gp.num_outputs, gp.num_outputs, dtype=gp.beta.dtype) if gV is None else gV
+        gC = torch.zeros(gp.X.shape[1], gp.num_outputs, dtype=gp.beta.dtype) if gC is None else gC
+        g_m, g_S = gp._backward(ctx.saved, gM, gV, gC, ctx.mean_only, gp.workspace)
+        return g_m, g_S, None, None, None
 
 
 def predict_uncertain(
