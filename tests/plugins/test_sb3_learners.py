@@ -92,6 +92,16 @@ def test_agent_env_sees_sin_cos_and_drives_the_system_in_control_units(cartpole)
     assert interaction.steps == 2
 
 
+def test_agent_env_passes_sb3_env_checker(cartpole):
+    from stable_baselines3.common.env_checker import check_env
+
+    interaction = Interaction(cartpole.make_env(), cartpole.spec, seed=0)
+    check_env(make_agent_env(interaction.as_env(), cartpole.spec), warn=True)
+    counted = interaction.steps
+    interaction.close()
+    assert counted > 0 and counted == sum(ep.steps for ep in interaction.episodes)
+
+
 class _RecordingModel:
     """Stands in for an SB3 model: remembers what it was shown, answers a fixed normalised action."""
 
