@@ -77,6 +77,22 @@ class GPHyperparameters:
             self.log_ell.detach().clone(), self.log_alpha.detach().clone(), self.log_sigma.detach().clone(), z
         )
 
+    def as_dict(self) -> dict[str, torch.Tensor]:
+        """Plain tensors for checkpoints (``torch.load(weights_only=True)``); no key for absent pseudo-inputs."""
+        out = {"log_ell": self.log_ell, "log_alpha": self.log_alpha, "log_sigma": self.log_sigma}
+        if self.pseudo_inputs is not None:
+            out["pseudo_inputs"] = self.pseudo_inputs
+        return {k: v.detach().clone() for k, v in out.items()}
+
+    @classmethod
+    def from_dict(cls, state: dict) -> "GPHyperparameters":
+        """Inverse of :meth:`as_dict`."""
+        z = state.get("pseudo_inputs")
+        return cls(
+            *(torch.as_tensor(state[k], dtype=DTYPE).clone() for k in ("log_ell", "log_alpha", "log_sigma")),
+            None if z is None else torch.as_tensor(z, dtype=DTYPE).clone(),
+        )
+
 
 # ----------------------------------------------------------------------------- data scales
 

@@ -432,6 +432,16 @@ def test_state_dict_round_trip(sparse):
     restored = GPModel(num_pseudo=10)
     restored.load_state_dict(torch.load(buffer, weights_only=True))
     assert restored.sparse == sparse
+    # the hyperparameters alone (the learner's warm start) also survive a weights-only checkpoint
+    buffer = io.BytesIO()
+    torch.save(model.hyperparameters.as_dict(), buffer)
+    buffer.seek(0)
+    hyp = GPHyperparameters.from_dict(torch.load(buffer, weights_only=True))
+    assert (hyp.pseudo_inputs is not None) == sparse
+    for name in ("log_ell", "log_alpha", "log_sigma", "pseudo_inputs"):
+        want = getattr(model.hyperparameters, name)
+        if want is not None:
+            torch.testing.assert_close(getattr(hyp, name), want, rtol=0, atol=0)
     xs = torch.randn(5, 2, dtype=DT)
     for got, want in zip(restored.predict(xs), model.predict(xs)):
         torch.testing.assert_close(got, want, rtol=1e-12, atol=1e-12)
