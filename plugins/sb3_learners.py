@@ -32,6 +32,7 @@ stays fast.
 from __future__ import annotations
 
 import json
+import shutil
 from abc import abstractmethod
 import tempfile
 import time
@@ -292,16 +293,20 @@ class SB3Learner(Learner):
         hp = self.hyperparameters()
         model = self.build_model(make_agent_env(interaction.as_env(), self.spec), hp)
         policy = SB3Policy(model, self.spec)
-        self.artifacts.append(self._write_hyperparameters(hp))
+        hp_file = self._write_hyperparameters(hp)
+        self.artifacts.append(hp_file)  # the harness attaches it after the first hand-over
         chunk = int(hp["eval_every_steps"])
-        while True:
-            steps_before, start = interaction.steps, time.perf_counter()
-            model.learn(chunk, reset_num_timesteps=False, log_interval=None, progress_bar=bool(self.options["progress_bar"]))
-            elapsed = time.perf_counter() - start
-            self.metrics["sb3_steps_per_second"] = (interaction.steps - steps_before) / max(elapsed, 1e-9)
-            self.metrics["sb3_num_timesteps"] = float(model.num_timesteps)
-            self.metrics.update(_train_metrics(model))
-            yield policy
+        try:
+            while True:
+                steps_before, start = interaction.steps, time.perf_counter()
+                model.learn(chunk, reset_num_timesteps=False, log_interval=None, progress_bar=bool(self.options["progress_bar"]))
+                elapsed = time.perf_counter() - start
+                self.metrics["sb3_steps_per_second"] = (interaction.steps - steps_before) / max(elapsed, 1e-9)
+                self.metrics["sb3_num_timesteps"] = float(model.num_timesteps)
+                self.metrics.update(_train_metrics(model))
+                yield policy
+        finally:
+            shutil.rmtree(hp_file.parent, ignore_errors=True)
 
     def _write_hyperparameters(self, hp: dict[str, Any]) -> Path:
         directory = Path(tempfile.mkdtemp(prefix=f"harness-{self.name}-"))

@@ -240,9 +240,10 @@ def test_hyperparameters_are_attached_at_the_first_handover(cartpole):
     import json
 
     learner, _, generator, interaction = _first_handover(SACLearner, SAC_SMALL, cartpole, seed=0)
-    generator.close()
-    interaction.close()
     (path,) = learner.artifacts
     saved = json.loads(path.read_text())
+    generator.close()
+    interaction.close()
     assert saved["algorithm"] == "SAC" and saved["task"] == "cartpole"
     assert saved["net_width"] == 16 and saved["eval_every_steps"] == 40 and saved["learning_rate"] == 1e-3
+    assert not path.exists()  # the temporary copy is removed when the learner is closed
