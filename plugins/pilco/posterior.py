@@ -24,8 +24,8 @@ class GPPosterior:
     Attributes:
         inputs: ``(n, d)`` basis inputs X.
         beta: ``(E, n)``; full GP: ``(K_a + sigma_a^2 I)^-1 y_a``.
-        inv_k: ``(E, n, n)``; full GP: ``(K_a + sigma_a^2 I)^-1``; FITC: ``K_mm^-1 - (K_mm + K_mn Gamma^-1 K_nm)^-1``
-            (sigma_a^2 folded in as in the reference's gp1).
+        inv_k: ``(E, n, n)``; full GP: ``(K_a + sigma_a^2 I)^-1``; FITC: ``K_mm^-1 - (K_mm + K_mn Lambda^-1 K_nm)^-1`` with
+            ``Lambda = diag(K_nn - Q_nn) + sigma_a^2 I`` (as in the reference's gp1).
         log_ell: ``(E, d)`` log length-scales.
         log_alpha: ``(E,)`` log signal standard deviations.
         log_sigma: ``(E,)`` log observation-noise standard deviations (not used by prediction of f).
