@@ -11,10 +11,10 @@ networks see and emit:
   affinely to ``[action_low, action_high]`` (:func:`to_bounds`).
 
 Hand-over: ``model.learn(K, reset_num_timesteps=False)`` in a loop, ``K = eval_every_steps``
-counted steps per hand-over (SAC: 5 episodes by default, trained once per episode, so SB3 stops
-at the first episode end at or after ``K``; PPO: rounded up to whole updates of ``n_steps``, a
-whole number of episodes by default), then the deterministic policy (:class:`SB3Policy`, the mean action) is
-yielded to the harness, which evaluates it on its own, uncounted environment. The yielded policy
+counted steps per hand-over (SAC: 5 episodes by default; it trains once per episode, so each
+chunk is whole episodes, at least ``K`` steps; PPO: whole updates of ``n_steps``, by default a
+whole number of episodes), then the deterministic policy (:class:`SB3Policy`, the mean action)
+is yielded to the harness, which evaluates it on its own, uncounted environment. The yielded policy
 holds the live model: it is the policy *at* the hand-over and keeps learning afterwards, which is
 what the harness needs (it evaluates and saves it before asking for the next one).
 
@@ -33,9 +33,9 @@ from __future__ import annotations
 
 import json
 import shutil
-from abc import abstractmethod
 import tempfile
 import time
+from abc import abstractmethod
 from collections.abc import Iterator, Sequence
 from pathlib import Path
 from typing import Any, ClassVar
