@@ -146,17 +146,23 @@ class _ExpBilinearContraction(torch.autograd.Function):
         return (*grads, None, None)
 
 
+#: the posterior-derived tensors of :class:`MomentMatchingGP` that gradients may flow to
+_CONSTANTS = (
+    "X_s", "X_a", "X_b", "inv_ell", "inv_lam_a", "inv_lam_b", "scale_outer", "inv_dd",
+    "log_alpha2", "alpha2", "beta", "beta_a", "beta_b", "inv_k",
+)
+
+
 class MomentMatchingGP:
     """A :class:`GPPosterior` prepared for repeated moment matching (:meth:`predict`).
 
     Everything that depends only on the posterior (scales, pair selections, ``X Lambda^-1``) is
-    computed once here; build one per policy evaluation (for the RBF policy: once per J, inside
-    the autograd graph, so gradients reach its parameters), then call :meth:`predict` per step.
-
-    Two code paths with the same forward arithmetic: if no posterior tensor requires a gradient
-    (the dynamics model during policy optimisation), gradients wrt ``(m, S)`` come from a
-    hand-derived backward pass (:class:`_FixedPosteriorMoments`, about a third of the operator
-    calls of autograd); otherwise autograd differentiates everything (the RBF policy).
+    computed once here, inside the autograd graph when the posterior has gradients (the RBF
+    policy: build one per J so that gradients reach its parameters); then :meth:`predict` runs
+    once per time step. Its backward pass is hand-derived (:meth:`_backward`, gradients wrt ``m``,
+    ``S`` and the prepared tensors; autograd carries them on to the posterior's parameters once).
+    It has a third of the operator calls of autograd through the same forward
+    (:meth:`_forward` with ``contract=None``, kept as the reference the tests compare against).
     """
 
     def __init__(self, posterior: GPPosterior) -> None:
@@ -169,12 +175,11 @@ class MomentMatchingGP:
         inv_lam = self.inv_ell * self.inv_ell  # (E, d) diagonal of Lambda_a^-1
         self.log_alpha2 = 2.0 * posterior.log_alpha  # (E,)
         self.alpha2 = torch.exp(self.log_alpha2)
-        self.X = X
         self.X_s = X * self.inv_ell[:, None, :]  # (E, n, d)  iL_a X_i
-        self.dh = torch.sqrt(inv_lam[first] + inv_lam[second])  # (P, d)
-        self.inv_dd = 1.0 / (self.dh[:, :, None] * self.dh[:, None, :])  # (P, d, d)
-        self.scale = torch.cat([self.inv_ell, self.dh], dim=0)  # (E + P, d)
-        self.scale_outer = self.scale[:, :, None] * self.scale[:, None, :]  # (E + P, d, d)
+        dh = torch.sqrt(inv_lam[first] + inv_lam[second])  # (P, d)
+        self.inv_dd = 1.0 / (dh[:, :, None] * dh[:, None, :])  # (P, d, d)
+        scale = torch.cat([self.inv_ell, dh], dim=0)  # (E + P, d)
+        self.scale_outer = scale[:, :, None] * scale[:, None, :]  # (E + P, d, d)
         self.inv_lam_a, self.inv_lam_b = inv_lam[first], inv_lam[second]  # (P, d)
         self.X_a = X * self.inv_lam_a[:, None, :]  # (P, n, d)  Lambda_a^-1 X_i
         self.X_b = X * self.inv_lam_b[:, None, :]
@@ -182,10 +187,10 @@ class MomentMatchingGP:
         self.beta = beta
         self.beta_a, self.beta_b = beta[first], beta[second]
         self.inv_k = posterior.inv_k.contiguous()
+        self.input_dim = X.shape[1]
         self.workspace = _Workspace()
-        self.fixed = not any(
-            t.requires_grad for t in (posterior.inputs, posterior.beta, posterior.inv_k, posterior.log_ell, posterior.log_alpha)
-        )
+        self.constants = tuple(getattr(self, name) for name in _CONSTANTS)
+        self.has_grad = any(t.requires_grad for t in self.constants)
 
     def predict(
         self, m: torch.Tensor, S: torch.Tensor, mean_only: bool = False, slot: int | None = None
@@ -196,14 +201,14 @@ class MomentMatchingGP:
         integer (e.g. the time step of a rollout) to keep the ``(P, n, n)`` work buffer of this call
         for reuse by the next call with the same slot (see :class:`_Workspace`); ``None`` allocates.
         """
-        if self.fixed and (m.requires_grad or S.requires_grad) and torch.is_grad_enabled():
-            return _FixedPosteriorMoments.apply(m, S, self, mean_only, slot)
-        return self._forward(m, S, mean_only, slot, contract=None)[0]
+        if torch.is_grad_enabled() and (self.has_grad or m.requires_grad or S.requires_grad):
+            return _MomentsFunction.apply(m, S, self, mean_only, slot, *self.constants)
+        return self._forward(m, S, mean_only, slot, contract=_contract_forward)[0]
 
     def _forward(self, m, S, mean_only, slot, contract):
         """The moment-matching arithmetic; ``contract=None`` uses the autograd Function for the
-        exp-contraction, otherwise the plain forward (inside :class:`_FixedPosteriorMoments`).
-        Returns ``((M, V, C), intermediates)``."""
+        exp-contraction (autograd reference path), otherwise the plain forward.
+        Returns ``((M, V, C), intermediates for _backward)``."""
         e = self.num_outputs
         d = m.shape[0]
         eye = torch.eye(d, dtype=S.dtype, device=S.device)
@@ -219,14 +224,17 @@ class MomentMatchingGP:
         t = nu_s @ b_inv[:e]  # (E, n, d)  B_a^-1 iL_a nu_i
         sq = (nu_s * nu_s).sum(-1)  # (E, n)
         log_q = (self.log_alpha2 - half_logdet[:e])[:, None] - 0.5 * (nu_s * t).sum(-1)  # (E, n)
-        lb = torch.exp(log_q) * self.beta  # (E, n)  beta_ai q_ai
+        q = torch.exp(log_q)
+        lb = q * self.beta  # (E, n)  beta_ai q_ai
         M = lb.sum(-1)
         # S^-1 cov[x, f_a] = sum_i beta_ai q_ai (S + Lambda_a)^-1 nu_i,  (S + Lambda_a)^-1 nu_i = iL_a t_ai
-        C = (lb[:, None, :] @ t).squeeze(1).T * self.inv_ell.T  # (d, E)
+        lbt = (lb[:, None, :] @ t).squeeze(1)  # (E, d)
+        C = (lbt * self.inv_ell).T  # (d, E)
 
         # ---- second moments: Q for the pairs a <= b -------------------------------------------
         # T = R^-1 S / 2 = D^-1 (I - B^-1) D^-1 / 2 with R = S (Lambda_a^-1 + Lambda_b^-1) + I
-        T = 0.5 * (eye - b_inv[e:]) * self.inv_dd  # (P, d, d)
+        half_i_minus_binv = 0.5 * (eye - b_inv[e:])
+        T = half_i_minus_binv * self.inv_dd  # (P, d, d)
         za = self.X_a - m * self.inv_lam_a[:, None, :]  # (P, n, d)  Lambda_a^-1 nu_i
         zb = self.X_b - m * self.inv_lam_b[:, None, :]  # (P, n, d)  Lambda_b^-1 nu_j
         za_t = za @ T
@@ -244,66 +252,93 @@ class MomentMatchingGP:
             saved = None
         else:
             quad, trace, Q, q_wr = contract(left, right, self.beta_a, self.beta_b, inv_k, self.workspace, slot)
-            saved = (b_inv, nu_s, t, lb, za, zb, za_t, zb_t, left, right, inv_k, Q, q_wr, M, T)
+            saved = (m, S, b_inv, nu_s, t, q, lb, lbt, za, zb, za_t, zb_t, T, half_i_minus_binv, left, right, inv_k, Q, q_wr, M)
         V = quad[self.full].reshape(e, e) - M[:, None] * M[None, :]
         if not mean_only:
             V = V + torch.diag(self.alpha2 - trace)
         return (M, V, C), saved
 
-    def _backward(self, saved, gM, gV, gC, mean_only, workspace):
-        """Hand-derived gradients of ``(M, V, C)`` wrt ``(m, S)`` for a fixed posterior."""
-        b_inv, nu_s, t, lb, za, zb, za_t, zb_t, left, right, inv_k, Q, q_wr, M, T = saved
+    def _backward(self, saved, gM, gV, gC, mean_only, needs):
+        """Hand-derived gradients of ``(M, V, C)`` wrt ``(m, S, *constants)`` (``None`` where not needed)."""
+        m, S, b_inv, nu_s, t, q, lb, lbt, za, zb, za_t, zb_t, T, half_i_minus_binv, left, right, inv_k, Q, q_wr, M = saved
         e, d = self.num_outputs, nu_s.shape[-1]
+        need_c = dict(zip(_CONSTANTS, needs[2:]))
         # V = quad[full] - M M^T + diag(alpha2 - trace)
         g_quad = torch.zeros(self.first.shape[0], dtype=gV.dtype).index_add_(0, self.full, gV.reshape(-1))
         g_trace = None if mean_only else -torch.diagonal(gV)
         gM = gM - (gV + gV.T) @ M
-        grad_left, grad_right, _, _, _ = _contract_backward(
-            left, right, self.beta_a, self.beta_b, inv_k, Q, q_wr, g_quad, g_trace, workspace, (True, True, False, False, False)
+        grad_left, grad_right, g_beta_a, g_beta_b, g_inv_k = _contract_backward(
+            left, right, self.beta_a, self.beta_b, inv_k, Q, q_wr, g_quad, g_trace, self.workspace,
+            (True, True, need_c["beta_a"], need_c["beta_b"], need_c["inv_k"] and not mean_only),
         )
         # left = [2 za T, u, 1], right = [zb, 1, v]
         g_zaT = 2.0 * grad_left[..., :d]  # dL/d(za T)
         g_u = grad_left[..., d]  # (P, n)
         g_zb = grad_right[..., :d]
         g_v = grad_right[..., d + 1]
-        # u = log_k[first] + za^T T za - hl_p ;  v = log_k[second] + zb^T T zb
+        # u = log_k[first] + za^T T za - hl_p ;  v = log_k[second] + zb^T T zb  (T symmetric)
         g_za = g_zaT @ T + 2.0 * g_u[..., None] * za_t
         g_zb = g_zb + 2.0 * g_v[..., None] * zb_t
-        g_T = za.mT @ g_zaT + za.mT @ (g_u[..., None] * za) + zb.mT @ (g_v[..., None] * zb)  # (P, d, d)
+        g_T = za.mT @ (g_zaT + g_u[..., None] * za) + zb.mT @ (g_v[..., None] * zb)  # (P, d, d)
         g_logk = torch.zeros(e, g_u.shape[1], dtype=g_u.dtype).index_add_(0, self.first, g_u).index_add_(0, self.second, g_v)
-        g_hl = torch.cat([torch.zeros(e, dtype=g_u.dtype), -g_u.sum(-1)])  # (E + P,)
-        # za = X_a - m la_a, zb = X_b - m la_b
-        g_m = -(g_za.sum(1) * self.inv_lam_a).sum(0) - (g_zb.sum(1) * self.inv_lam_b).sum(0)
-        # mean part: C[:, a] = iL_a * (lb_a @ t_a),  M = sum lb,  lb = exp(log_q) beta
-        w = gC.T * self.inv_ell  # (E, d)
+        # mean part: C = (lbt * iL)^T, lbt_a = lb_a @ t_a,  M = sum lb,  lb = q beta
+        w = gC.T * self.inv_ell  # (E, d)  dL/dlbt
         g_lb = gM[:, None] + (t @ w[..., None]).squeeze(-1)  # (E, n)
-        g_t = lb[..., None] * w[:, None, :]
         g_logq = g_lb * lb
-        g_hl[:e] = -g_logq.sum(-1)
-        # log_q = la2 - hl_a - 1/2 nu_s . t ;  log_k = la2 - 1/2 |nu_s|^2
-        g_nu = -0.5 * g_logq[..., None] * t - g_logk[..., None] * nu_s
-        g_t = g_t - 0.5 * g_logq[..., None] * nu_s
-        # t = nu_s @ B_a^-1
-        g_nu = g_nu + g_t @ b_inv[:e]
-        g_binv = torch.cat([nu_s.mT @ g_t, -0.5 * g_T * self.inv_dd], dim=0)  # (E + P, d, d)
-        g_m = g_m - (g_nu.sum(1) * self.inv_ell).sum(0)
-        # B^-1 and 1/2 log|B| of B = scale_outer * S + I
-        g_B = -b_inv @ g_binv @ b_inv + 0.5 * g_hl[:, None, None] * b_inv
-        g_S = (g_B * self.scale_outer).sum(0)
-        # S enters through a Cholesky factorisation, which reads it as symmetric: return the
-        # symmetric gradient (torch's convention for linalg.cholesky, so both paths agree)
-        return g_m, 0.5 * (g_S + g_S.T)
+        # log_q = la2 - hl_a - 1/2 nu_s . t ;  log_k = la2 - 1/2 |nu_s|^2 ;  t = nu_s @ B_a^-1
+        g_t = lb[..., None] * w[:, None, :] - 0.5 * g_logq[..., None] * nu_s
+        g_nu = g_t @ b_inv[:e] - 0.5 * g_logq[..., None] * t - g_logk[..., None] * nu_s
+        g_hl = torch.cat([-g_logq.sum(-1), -g_u.sum(-1)])  # (E + P,)  d/d(1/2 log|B|)
+        g_binv = torch.cat([nu_s.mT @ g_t, -0.5 * g_T * self.inv_dd], dim=0) if needs[1] or need_c["scale_outer"] else None
+        grads = {}
+        if needs[0]:
+            # nu_s = X_s - m iL,  za = X_a - m la_a,  zb = X_b - m la_b
+            grads["m"] = -(
+                (g_nu.sum(1) * self.inv_ell).sum(0) + (g_za.sum(1) * self.inv_lam_a).sum(0) + (g_zb.sum(1) * self.inv_lam_b).sum(0)
+            )
+        if g_binv is not None:
+            # B^-1 and 1/2 log|B| of B = scale_outer * S + I
+            g_B = 0.5 * g_hl[:, None, None] * b_inv - b_inv @ g_binv @ b_inv
+            if needs[1]:
+                g_S = (g_B * self.scale_outer).sum(0)
+                # S enters through a Cholesky factorisation, which reads it as symmetric: return the
+                # symmetric gradient (torch's convention for linalg.cholesky, so both paths agree)
+                grads["S"] = 0.5 * (g_S + g_S.T)
+            if need_c["scale_outer"]:
+                grads["scale_outer"] = g_B * S
+        grads["X_s"] = g_nu
+        grads["X_a"] = g_za
+        grads["X_b"] = g_zb
+        if need_c["inv_ell"]:
+            grads["inv_ell"] = gC.T * lbt - m * g_nu.sum(1)
+        if need_c["inv_lam_a"]:
+            grads["inv_lam_a"] = -m * g_za.sum(1)
+        if need_c["inv_lam_b"]:
+            grads["inv_lam_b"] = -m * g_zb.sum(1)
+        if need_c["inv_dd"]:
+            grads["inv_dd"] = g_T * half_i_minus_binv
+        grads["log_alpha2"] = g_logq.sum(-1) + g_logk.sum(-1)
+        if need_c["alpha2"] and not mean_only:
+            grads["alpha2"] = torch.diagonal(gV).clone()
+        grads["beta"] = g_lb * q
+        grads["beta_a"], grads["beta_b"], grads["inv_k"] = g_beta_a, g_beta_b, g_inv_k
+        out = [grads.get("m"), grads.get("S")]
+        out += [grads.get(name) if need else None for name, need in need_c.items()]
+        return out
 
 
-class _FixedPosteriorMoments(torch.autograd.Function):
-    """:meth:`MomentMatchingGP.predict` for a posterior without gradients: forward without an
-    autograd graph, backward hand-derived (tested against the autograd path)."""
+class _MomentsFunction(torch.autograd.Function):
+    """:meth:`MomentMatchingGP.predict` with the hand-derived backward pass.
+
+    Inputs ``(m, S, gp, mean_only, slot, *gp.constants)``; the constants are passed so that
+    autograd routes their gradients to the posterior's parameters (e.g. the RBF policy's).
+    """
 
     @staticmethod
-    def forward(ctx, m, S, gp: MomentMatchingGP, mean_only: bool, slot):
+    def forward(ctx, m, S, gp: MomentMatchingGP, mean_only: bool, slot, *constants):
         (M, V, C), saved = gp._forward(m, S, mean_only, slot, contract=_contract_forward)
         ctx.gp, ctx.mean_only, ctx.saved = gp, mean_only, saved
-        ctx.save_for_backward(saved[11])  # Q: version-checked against work-buffer reuse
+        ctx.save_for_backward(saved[17])  # Q: version-checked against work-buffer reuse
         return M, V, C
 
     @staticmethod
@@ -311,11 +346,13 @@ class _FixedPosteriorMoments(torch.autograd.Function):
     def backward(ctx, gM, gV, gC):
         ctx.saved_tensors  # raises if the work buffer was reused since the forward pass
         gp = ctx.gp
-        gM = torch.zeros(gp.num_outputs, dtype=gp.beta.dtype) if gM is None else gM
-        gV = torch.zeros(gp.num_outputs, gp.num_outputs, dtype=gp.beta.dtype) if gV is None else gV
-        gC = torch.zeros(gp.X.shape[1], gp.num_outputs, dtype=gp.beta.dtype) if gC is None else gC
-        g_m, g_S = gp._backward(ctx.saved, gM, gV, gC, ctx.mean_only, gp.workspace)
-        return g_m, g_S, None, None, None
+        e, dtype = gp.num_outputs, gp.beta.dtype
+        gM = torch.zeros(e, dtype=dtype) if gM is None else gM
+        gV = torch.zeros(e, e, dtype=dtype) if gV is None else gV
+        gC = torch.zeros(gp.input_dim, e, dtype=dtype) if gC is None else gC
+        needs = ctx.needs_input_grad
+        grads = gp._backward(ctx.saved, gM, gV, gC, ctx.mean_only, needs[:2] + needs[5:])
+        return grads[0], grads[1], None, None, None, *grads[2:]
 
 
 def predict_uncertain(

@@ -195,14 +195,14 @@ def test_predict_gradcheck(mean_only: bool) -> None:
     assert torch.autograd.gradcheck(fn, args)
 
 
-@pytest.mark.parametrize("num_outputs,mean_only", [(1, False), (3, False), (4, True), (5, False)])
-def test_hand_derived_backward_equals_autograd(num_outputs: int, mean_only: bool) -> None:
-    """Fixed posterior: the hand-derived (m, S) gradients equal autograd through the same forward."""
+@pytest.mark.parametrize("num_outputs,mean_only", [(1, False), (1, True), (3, False), (4, True), (5, False)])
+@pytest.mark.parametrize("posterior_grad", [False, True])
+def test_hand_derived_backward_equals_autograd(num_outputs: int, mean_only: bool, posterior_grad: bool) -> None:
+    """The hand-derived backward equals autograd through the same forward, for gradients wrt
+    (m, S) and (with posterior_grad) wrt the posterior's inputs, beta, inv_k and hyperparameters."""
     gen = torch.Generator().manual_seed(1000 + num_outputs)
     post = random_posterior(num_outputs, 20, 4, gen, fitc=num_outputs == 3)
     m, S = random_gaussian(4, gen)
-    gp = MomentMatchingGP(post)
-    assert gp.fixed
     weights = (
         torch.randn(num_outputs, generator=gen, dtype=DT),
         torch.randn(num_outputs, num_outputs, generator=gen, dtype=DT),
@@ -210,10 +210,18 @@ def test_hand_derived_backward_equals_autograd(num_outputs: int, mean_only: bool
     )
     results = []
     for hand in (True, False):
-        mm, SS = m.clone().requires_grad_(), S.clone().requires_grad_()
-        out = gp.predict(mm, SS, mean_only, slot=3) if hand else gp._forward(mm, SS, mean_only, None, None)[0]
+        leaves = [t.clone().requires_grad_() for t in (m, S)]
+        tensors = (post.inputs, post.beta, post.inv_k, post.log_ell, post.log_alpha)
+        if posterior_grad:
+            tensors = tuple(t.clone().requires_grad_() for t in tensors)
+            leaves += list(tensors)
+        gp = MomentMatchingGP(GPPosterior(*tensors, post.log_sigma))
+        assert gp.has_grad == posterior_grad
+        out = gp.predict(*leaves[:2], mean_only, slot=3) if hand else gp._forward(*leaves[:2], mean_only, None, None)[0]
         loss = sum((o * w).sum() for o, w in zip(out, weights))
-        results.append(torch.autograd.grad(loss, (mm, SS)) + tuple(o.detach() for o in out))
+        grads = torch.autograd.grad(loss, leaves, allow_unused=True)
+        grads = [torch.zeros_like(x) if g is None else g for g, x in zip(grads, leaves)]  # unused inv_k if mean_only
+        results.append(grads + [o.detach() for o in out])
     for hand, auto in zip(*results):
         assert torch.allclose(hand, auto, rtol=1e-11, atol=1e-13)
 
