@@ -31,6 +31,65 @@ import torch
 SQUASH_KINDS = ("trapezoid", "sin")
 
 
+def _sin_forward(m, S, A, b):
+    """The arithmetic of :func:`sin_moments`; returns the moments and the intermediates."""
+    mu = m @ A.T
+    if b is not None:
+        mu = mu + b
+    vy = A @ S @ A.T  # (..., K, K)
+    e = torch.exp(-0.5 * torch.diagonal(vy, dim1=-2, dim2=-1))  # (..., K)
+    s, c = torch.sin(mu), torch.cos(mu)
+    diff = mu[..., :, None] - mu[..., None, :]
+    summ = mu[..., :, None] + mu[..., None, :]
+    cos_d, cos_s = torch.cos(diff), torch.cos(summ)
+    pos, neg = torch.expm1(vy), torch.expm1(-vy)
+    half_ee = 0.5 * e[..., :, None] * e[..., None, :]
+    inner = pos * cos_d - neg * cos_s
+    ec = e * c
+    moments = (e * s, half_ee * inner, A.T * ec[..., None, :])
+    return moments, (s, c, e, diff, summ, cos_d, cos_s, pos, neg, half_ee, inner)
+
+
+class _SinMoments(torch.autograd.Function):
+    """:func:`sin_moments` with a hand-derived backward pass (wrt ``m`` and ``S``; ``A``, ``b`` fixed)."""
+
+    @staticmethod
+    def forward(ctx, m, S, A, b):
+        moments, saved = _sin_forward(m, S, A, b)
+        ctx.A, ctx.saved = A, saved
+        return moments
+
+    @staticmethod
+    @torch.autograd.function.once_differentiable
+    def backward(ctx, g_mean, g_cov, g_cross):
+        A = ctx.A
+        s, c, e, diff, summ, cos_d, cos_s, pos, neg, half_ee, inner = ctx.saved
+        g_e = torch.zeros_like(e)
+        g_mu = torch.zeros_like(e)
+        g_vy = torch.zeros_like(inner)
+        if g_cov is not None:
+            # cov_ij = 1/2 e_i e_j [expm1(v_ij) cos(mu_i - mu_j) - expm1(-v_ij) cos(mu_i + mu_j)]
+            gh = g_cov * half_ee
+            g_vy = gh * ((pos + 1.0) * cos_d + (neg + 1.0) * cos_s)
+            p_sd = pos * torch.sin(diff)
+            n_ss = neg * torch.sin(summ)
+            g_mu = (gh * (n_ss - p_sd)).sum(-1) + (gh * (n_ss + p_sd)).sum(-2)
+            gi = 0.5 * g_cov * inner
+            g_e = (gi * e[..., None, :]).sum(-1) + (gi * e[..., :, None]).sum(-2)
+        if g_mean is not None:  # mean = e sin mu
+            g_e = g_e + g_mean * s
+            g_mu = g_mu + g_mean * e * c
+        if g_cross is not None:  # cross = A^T diag(e cos mu)
+            g_ec = (g_cross * A.T).sum(-2)
+            g_e = g_e + g_ec * c
+            g_mu = g_mu - g_ec * e * s
+        # e = exp(-vy_ii / 2),  vy = A S A^T,  mu = A m + b
+        g_vy = g_vy - torch.diag_embed(0.5 * e * g_e)
+        g_S = A.T @ g_vy @ A if ctx.needs_input_grad[1] else None
+        g_m = g_mu @ A if ctx.needs_input_grad[0] else None
+        return g_m, g_S, None, None
+
+
 def sin_moments(
     m: torch.Tensor, S: torch.Tensor, A: torch.Tensor, b: torch.Tensor | None = None
 ) -> tuple[torch.Tensor, torch.Tensor, torch.Tensor]:
@@ -38,22 +97,14 @@ def sin_moments(
 
     Args:
         m: ``(..., D)``; S: ``(..., D, D)``; A: ``(K, D)``; b: ``(K,)`` or ``None`` (zero).
+        ``A`` and ``b`` are constants (no gradients).
 
     Returns:
         mean ``(..., K)``, covariance ``(..., K, K)``, ``C (..., D, K)`` with ``cov[x, sin y] = S @ C``.
     """
-    mu = m @ A.T
-    if b is not None:
-        mu = mu + b
-    vy = A @ S @ A.T  # (..., K, K)
-    e = torch.exp(-0.5 * torch.diagonal(vy, dim1=-2, dim2=-1))  # (..., K)
-    mean = e * torch.sin(mu)
-    mu_i, mu_j = mu[..., :, None], mu[..., None, :]
-    cov = (0.5 * e[..., :, None] * e[..., None, :]) * (
-        torch.expm1(vy) * torch.cos(mu_i - mu_j) - torch.expm1(-vy) * torch.cos(mu_i + mu_j)
-    )
-    cross = A.T * (e * torch.cos(mu))[..., None, :]  # (..., D, K)
-    return mean, cov, cross
+    if torch.is_grad_enabled() and (m.requires_grad or S.requires_grad):
+        return _SinMoments.apply(m, S, A, b)
+    return _sin_forward(m, S, A, b)[0]
 
 
 @lru_cache(maxsize=64)

@@ -7,7 +7,7 @@ import math
 import pytest
 import torch
 
-from plugins.pilco.trig import augment_trig, sin_moments, squash, squash_moments, trig_moments
+from plugins.pilco.trig import _sin_forward, augment_trig, sin_moments, squash, squash_moments, trig_moments
 from tests.pilco.random_gp import DT, mc_moments, random_gaussian
 
 torch.set_num_threads(1)
@@ -104,3 +104,24 @@ def test_squash_bounds_and_shape() -> None:
     assert torch.allclose(top, u_max)
     with pytest.raises(ValueError):
         squash(z, u_max, "tanh")
+
+
+@pytest.mark.parametrize("batch", [(), (3,)])
+def test_hand_derived_backward_equals_autograd(batch) -> None:
+    gen = torch.Generator().manual_seed(6)
+    A = torch.tensor([[1.0, 0.0, 0.5], [0.0, -1.0, 1.0], [1.0, 0.0, 0.5]], dtype=DT)
+    b = torch.tensor([0.0, 0.3, 0.5 * math.pi], dtype=DT)
+    L = torch.randn(*batch, 3, 3, generator=gen, dtype=DT) * 0.6
+    S = L @ L.mT
+    m = torch.randn(*batch, 3, generator=gen, dtype=DT)
+    weights = [torch.randn(*batch, *shape, generator=gen, dtype=DT) for shape in ((3,), (3, 3), (3, 3))]
+    results = []
+    for hand in (True, False):
+        mm, SS = m.clone().requires_grad_(), S.clone().requires_grad_()
+        out = sin_moments(mm, SS, A, b) if hand else _sin_forward(mm, SS, A, b)[0]
+        loss = sum((o * w).sum() for o, w in zip(out, weights))
+        results.append(torch.autograd.grad(loss, (mm, SS)))
+    for hand, auto in zip(*results):
+        assert torch.allclose(hand, auto, rtol=1e-12, atol=1e-14)
+    fn = lambda mm, SS: sin_moments(mm, SS, A, b)  # noqa: E731
+    assert torch.autograd.gradcheck(fn, (m.clone().requires_grad_(), S.clone().requires_grad_()))
