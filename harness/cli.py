@@ -2,6 +2,8 @@
 
     harness list [--options]
     harness bench --learner L --task T [--seed S] [--max-trials N | --budget-seconds X] [--set k=v ...]
+    harness sweep --learners L1,L2 --tasks T1,T2 --seeds 0-9 [--executor local|ray] [--workers N] [--set k=v ...]
+    harness report [--sweep ID] [--out results/]
     harness --version
 
 Errors caused by input (unknown plugin or option, bad value, unwritable store, ...) print one
@@ -181,3 +183,90 @@ def eval_command(run_id: str, episodes: int, seed: int, trial: int | None, out_d
     if report.histogram is not None:
         click.echo(f"  histogram of final distances: {report.histogram}")
     click.echo(f"  summary: {report.summary_path} (also logged to the run under test/)")
+
+
+@main.command("sweep")
+@click.option("--learners", required=True, help="Comma-separated learner names, e.g. pilco,sac.")
+@click.option("--tasks", required=True, help="Comma-separated task names, e.g. cartpole,double-pendulum.")
+@click.option("--seeds", default="0", show_default=True, help="Seeds: numbers and inclusive ranges, e.g. 0-9 or 0,3,5-7.")
+@click.option("--executor", type=click.Choice(["local", "ray"]), default="local", show_default=True,
+              help="local: a process pool on this machine; ray: Ray (embedded, or --address of a cluster; pip install 'pilco-harness[ray]').")
+@click.option("--workers", type=int, default=None, help="Cells at a time (default: CPU cores - 1, at least 1; Ray cluster: its CPUs).")
+@click.option("--address", default=None, help="Ray cluster address (e.g. ray://head:10001 or auto); default: embedded Ray.")
+@click.option("--max-trials", type=int, default=None, help="Stop every run after this many policy hand-overs.")
+@click.option("--budget-seconds", default=None, help="Stop every run when this much interaction (system seconds) is used.")
+@click.option("--set", "assignments", multiple=True, metavar="KEY=VALUE",
+              help="Option for every cell (repeatable); NAME:key=value applies it only to learner or task NAME.")
+@click.option("--eval-episodes", default=10, show_default=True, type=int, help="Evaluation episodes per hand-over.")
+@click.option("--tracking-uri", default=None, help="MLflow store (default: $MLFLOW_TRACKING_URI or sqlite:///./mlflow.db).")
+@click.option("--quiet", "-q", is_flag=True, help="No progress view; one line per cell at the end.")
+@_guarded
+def sweep_command(
+    learners: str,
+    tasks: str,
+    seeds: str,
+    executor: str,
+    workers: int | None,
+    address: str | None,
+    max_trials: int | None,
+    budget_seconds: str | None,
+    assignments: tuple[str, ...],
+    eval_episodes: int,
+    tracking_uri: str | None,
+    quiet: bool,
+) -> None:
+    """Run learners x tasks x seeds as child runs of one MLflow sweep run.
+
+    Re-running the same command resumes the sweep: finished cells are skipped, failed or
+    interrupted ones are run again. Exits with status 1 if any cell failed.
+    """
+    from harness.options import parse_assignments
+    from harness.sweep import RichSweepProgress, SilentSweepProgress, SweepSpec, parse_names, parse_seeds, run_sweep
+
+    spec = SweepSpec(
+        learners=parse_names(learners, "learners"),
+        tasks=parse_names(tasks, "tasks"),
+        seeds=parse_seeds(seeds),
+        assignments=tuple(parse_assignments(assignments)),
+        max_trials=max_trials,
+        budget_seconds=_parse_budget(budget_seconds),
+        eval_episodes=eval_episodes,
+    )
+    progress = SilentSweepProgress() if quiet else RichSweepProgress()
+    result = run_sweep(spec, tracking_uri=tracking_uri, executor=executor, workers=workers, address=address, progress=progress)
+    if quiet:
+        for outcome in result.outcomes:
+            click.echo(outcome.line())
+    counts = {s: len(result.with_status(s)) for s in ("finished", "skipped", "failed")}
+    click.echo(
+        f"sweep {result.sweep_id}: {counts['finished']} finished, {counts['skipped']} skipped (finished before), "
+        f"{counts['failed']} failed; parent run {result.parent_run_id} in experiment 'sweeps' at {result.tracking_uri}"
+    )
+    click.echo(f"  report: harness report --sweep {result.sweep_id} --tracking-uri {result.tracking_uri}")
+    if counts["failed"]:
+        click.echo(f"error: {counts['failed']} cell(s) failed (see above); re-run the same command to retry them", err=True)
+        sys.exit(1)
+
+
+@main.command("report")
+@click.option("--tracking-uri", default=None, help="MLflow store (default: $MLFLOW_TRACKING_URI or sqlite:///./mlflow.db).")
+@click.option("--sweep", "sweeps", multiple=True, metavar="ID", help="Sweep id (repeatable); default: every sweep in the store.")
+@click.option("--out", default="results", show_default=True, type=click.Path(file_okay=False), help="Directory for tables and figures.")
+@click.option("--table1-learner", default="pilco", show_default=True, help="Learner whose runs fill Table 1.")
+@click.option("--fig5-task", default="cartpole", show_default=True, help="Task of the Fig. 5 bar chart.")
+@click.option("--literature", default=None, type=click.Path(dir_okay=False), help="Sourced literature values for Fig. 5 (default: OUT/literature_fig5.csv if present).")
+@_guarded
+def report_command(tracking_uri: str | None, sweeps: tuple[str, ...], out: str, table1_learner: str, fig5_task: str, literature: str | None) -> None:
+    """Comparison tables, Table 1, Fig. 5 and learning curves from MLflow alone (nothing is re-run)."""
+    from pathlib import Path
+
+    from harness.report import make_report
+    from harness.tracking import open_client, resolve_tracking_uri
+
+    uri = resolve_tracking_uri(tracking_uri)
+    written = make_report(open_client(uri), Path(out), list(sweeps) or None, uri, table1_learner, fig5_task,
+                          Path(literature) if literature else None)
+    for path in written:
+        click.echo(str(path))
+    if sweeps:
+        click.echo(f"comparison tables logged on the parent run(s) of sweep {', '.join(sweeps)} (report/comparison.json)")

@@ -12,10 +12,13 @@ A sweep spans tasks, and MLflow nests children under their parent only inside on
 the sweep gets its own experiment rather than the per-task ones ``harness bench`` uses.
 
 **Identity and resuming.** The sweep id is a hash of the spec (learners, tasks, seeds as sets;
-the ``--set`` pairs; the limits). Running the same spec again finds the same parent run, skips
-the cells that have a FINISHED child and runs the others again (FAILED, KILLED, or RUNNING left
-by a driver that died) as new children; the old ones stay, and the report uses the newest
-FINISHED child of each cell. A failed cell is reported and never stops the others.
+the ``--set`` pairs; the limits). Running the same spec again finds the same parent run and
+skips the cells that have a FINISHED child. A cell whose newest child was interrupted (KILLED,
+or RUNNING left by a driver that died) continues in that child from its last per-trial
+checkpoint (:mod:`harness.checkpoint`) if its learner supports resuming and a checkpoint exists;
+every other unfinished cell (FAILED, or nothing to resume from) runs again as a new child. Old
+children stay; the report uses the newest FINISHED child of each cell. A failed cell is reported
+and never stops the others.
 
 **Creation order.** With a fresh SQLite store, concurrent workers race on schema creation
 (harness-reference §3.4): the driver opens the store, creates the experiment and the parent run,
@@ -191,6 +194,8 @@ class CellJob:
     parent_run_id: str
     sweep_id: str
     extra_params: dict[str, Any] = field(default_factory=dict)
+    #: an interrupted child of this cell to continue from its last checkpoint
+    resume_run_id: str | None = None
 
 
 @dataclass
@@ -206,9 +211,10 @@ class CellOutcome:
     wall_seconds: float = 0.0
     stop_reason: str = ""
     error: str = ""
+    resumed: bool = False
 
     def line(self) -> str:
-        head = f"{self.cell.label}"
+        head = f"{self.cell.label}" + (" (resumed from its checkpoint)" if self.resumed else "")
         if self.status == "failed":
             return f"{head}: FAILED ({self.error})"
         if self.status == "skipped":
@@ -315,12 +321,29 @@ def run_cell(job: CellJob) -> CellOutcome:
             return super().start(experiment, run_name, {**params, **job.extra_params},
                                  {**tags, SWEEP_TAG: job.sweep_id, ROLE_TAG: "cell"})
 
+    from harness.errors import CheckpointError
+
     cell = job.cell
-    tracker = CellTracker(job.tracking_uri, parent_run_id=job.parent_run_id, experiment_id=job.experiment_id)
     config = RunConfig(cell.learner, cell.task, cell.seed, dict(job.learner_options), dict(job.task_options),
                        job.max_trials, job.budget_seconds, job.eval_episodes)
+
+    def new_tracker() -> CellTracker:
+        return CellTracker(job.tracking_uri, parent_run_id=job.parent_run_id, experiment_id=job.experiment_id)
+
+    tracker = new_tracker()
+    resumed = False
     try:
-        result = run(config, tracker=tracker, progress=SilentProgress())
+        if job.resume_run_id is not None:
+            try:
+                result = run(config, tracker=tracker, progress=SilentProgress(), resume_run_id=job.resume_run_id)
+                resumed = True
+            except CheckpointError:  # no checkpoint, learner cannot resume, or other settings: start afresh
+                if tracker.run_id is not None and tracker.client.get_run(tracker.run_id).info.status == "RUNNING":
+                    tracker.client.set_terminated(tracker.run_id, "KILLED")
+                tracker = new_tracker()
+                result = run(config, tracker=tracker, progress=SilentProgress())
+        else:
+            result = run(config, tracker=tracker, progress=SilentProgress())
     except Exception as exc:
         error = f"{type(exc).__name__}: {exc}".splitlines()[0][:500]
         if tracker.run_id is not None:
@@ -330,7 +353,7 @@ def run_cell(job: CellJob) -> CellOutcome:
         cell, "finished", result.run_id, solved=result.solved,
         interaction_time_to_success=result.interaction_time_to_success,
         interaction_seconds=result.interaction_seconds, wall_seconds=result.wall_seconds,
-        stop_reason=result.stop_reason,
+        stop_reason=result.stop_reason, resumed=resumed,
     )
 
 
@@ -630,15 +653,21 @@ def run_sweep(
     parent_run_id = _open_parent(client, experiment_id, spec)
 
     finished: dict[Cell, str] = {}
+    newest: dict[Cell, Any] = {}
     for run in child_runs(client, experiment_id, parent_run_id):
         cell = _cell_of(run)
-        if cell is not None and run.info.status == "FINISHED":
+        if cell is None:
+            continue
+        if run.info.status == "FINISHED":
             finished[cell] = run.info.run_id
+        if cell not in newest or run.info.start_time > newest[cell].info.start_time:
+            newest[cell] = run
+    interrupted = {c: r.info.run_id for c, r in newest.items() if r.info.status in ("KILLED", "RUNNING")}
     outcomes = [CellOutcome(c, "skipped", finished[c]) for c in spec.cells() if c in finished]
     jobs = deque(
         CellJob(c, setups[(c.learner, c.task)]["learner_options"], setups[(c.learner, c.task)]["task_options"],
                 spec.max_trials, spec.budget_seconds, spec.eval_episodes, uri, experiment_id, parent_run_id, sweep_id,
-                setups[(c.learner, c.task)]["extra_params"])
+                setups[(c.learner, c.task)]["extra_params"], interrupted.get(c))
         for c in spec.cells() if c not in finished
     )
     result = SweepResult(sweep_id, parent_run_id, experiment_id, uri, outcomes)

@@ -1,0 +1,215 @@
+"""Figures of ``harness report``: Fig. 5 (interaction time to learn, log axis) and learning curves.
+
+Data first, plot second: every figure is drawn from a table that is also written as CSV, so the
+numbers behind a picture can be checked without reading pixels.
+"""
+
+from __future__ import annotations
+
+import math
+import warnings
+from collections.abc import Sequence
+from pathlib import Path
+from typing import Any
+
+import numpy as np
+
+from harness.statistics import times_with_failures
+
+
+def _plt():
+    import matplotlib
+
+    matplotlib.use("Agg")
+    import matplotlib.pyplot as plt
+
+    return plt
+
+
+def _plain_log_ticks(axis) -> None:
+    """Log-scale ticks written as plain numbers (``20``, ``0.5``) rather than ``2 x 10^1``."""
+    from matplotlib.ticker import FuncFormatter
+
+    plain = FuncFormatter(lambda v, _: f"{v:g}")
+    axis.set_major_formatter(plain)
+    axis.set_minor_formatter(plain)
+
+
+# ---------------------------------------------------------------------------------------------
+# Fig. 5
+# ---------------------------------------------------------------------------------------------
+
+
+def fig5_data(by_label: dict[str, Sequence[Any]], literature: Sequence[dict[str, str]]) -> list[dict[str, Any]]:
+    """Rows for Fig. 5: literature rows (chronological), then one row per learner we ran.
+
+    Ours: median and quartiles of the time to success with unsolved runs as +inf (order
+    statistics, no interpolation), the solved runs' min/max, and the interaction at which the
+    unsolved runs stopped (``censored_at_s``: their maximum, a lower bound for their time).
+    """
+    rows: list[dict[str, Any]] = []
+    for lit in sorted(literature, key=lambda r: (int(r.get("year") or 0), r["method"])):
+        value = float(lit["interaction_seconds"])
+        rows.append({"label": f"{lit['method']} ({lit.get('year', '')})".replace(" ()", ""), "kind": "literature",
+                     "runs": "", "solved": "", "median_s": value, "q25_s": value, "q75_s": value,
+                     "solved_min_s": value, "solved_max_s": value, "censored_at_s": math.nan,
+                     "seed_times_s": "", "source": lit["source"]})
+    for label, runs in by_label.items():
+        times = times_with_failures([r.solved for r in runs], [r.time_to_success for r in runs])
+        solved = times[np.isfinite(times)]
+        unsolved = [r.interaction_seconds for r in runs if not r.solved]
+        rows.append({
+            "label": label, "kind": "ours", "runs": len(runs), "solved": int(solved.size),
+            "median_s": float(np.median(times)),
+            "q25_s": float(np.quantile(times, 0.25, method="lower")),
+            "q75_s": float(np.quantile(times, 0.75, method="higher")),
+            "solved_min_s": float(solved.min()) if solved.size else math.nan,
+            "solved_max_s": float(solved.max()) if solved.size else math.nan,
+            "censored_at_s": max(unsolved) if unsolved else math.nan,
+            "seed_times_s": " ".join("inf" if math.isinf(t) else f"{t:.6g}" for t in times),
+            "source": "this harness (MLflow runs: " + " ".join(r.run_id for r in runs) + ")",
+        })
+    return rows
+
+
+def plot_fig5(rows: Sequence[dict[str, Any]], path: Path, task: str) -> Path:
+    """Bars on a log axis: median time to success; whiskers = quartiles; dots = seeds.
+
+    A learner whose median is not reached (at most half of its runs solved) gets a hatched bar
+    up to the interaction its unsolved runs used, labelled ``>``; unsolved seeds are drawn as
+    triangles at that interaction.
+    """
+    plt = _plt()
+    fig, ax = plt.subplots(figsize=(max(5.0, 0.9 * len(rows) + 2.0), 4.2), dpi=120)
+    finite = [v for r in rows for v in (r["median_s"], r["solved_max_s"], r["censored_at_s"]) if isinstance(v, float) and math.isfinite(v)]
+    top = max(finite) if finite else 1.0
+    for i, r in enumerate(rows):
+        ours = r["kind"] == "ours"
+        color = "tab:red" if ours else "0.6"
+        med = r["median_s"]
+        if math.isfinite(med):
+            ax.bar(i, med, color=color, alpha=0.85, width=0.6)
+            ax.text(i, med * 1.15, f"{med:.3g} s", ha="center", va="bottom", fontsize=7)
+            if ours:
+                q75 = r["q75_s"] if math.isfinite(r["q75_s"]) else top * 3
+                ax.plot([i, i], [r["q25_s"], q75], color="k", lw=1.2)
+                if not math.isfinite(r["q75_s"]):
+                    ax.annotate("", (i, q75), (i, q75 / 1.6), arrowprops={"arrowstyle": "->", "lw": 1.2})
+        elif ours and math.isfinite(r["censored_at_s"]):
+            ax.bar(i, r["censored_at_s"], color="none", edgecolor=color, hatch="//", width=0.6)
+            ax.text(i, r["censored_at_s"] * 1.15, f"> {r['censored_at_s']:.3g} s", ha="center", va="bottom", fontsize=7)
+        if ours:
+            times = [float(t) for t in str(r["seed_times_s"]).split()]
+            jitter = np.linspace(-0.15, 0.15, len(times)) if len(times) > 1 else [0.0]
+            for dx, t in zip(jitter, times):
+                if math.isfinite(t):
+                    ax.plot(i + dx, t, "o", ms=3, color="k")
+                elif math.isfinite(r["censored_at_s"]):
+                    ax.plot(i + dx, r["censored_at_s"], "^", ms=4, mfc="none", color="k")
+    values = [v for r in rows for v in (r["median_s"], r["q25_s"], r["solved_min_s"], r["censored_at_s"]) if isinstance(v, float) and math.isfinite(v) and v > 0]
+    ax.set_ylim(min(values, default=1.0) / 3, top * 8)
+    labels = [r["label"] + (f"\n{r['solved']}/{r['runs']} solved" if r["kind"] == "ours" else "") for r in rows]
+    ax.set_xticks(range(len(rows)), labels, fontsize=8)
+    ax.set_yscale("log")
+    _plain_log_ticks(ax.yaxis)
+    ax.set_ylabel("interaction time to success [s] (log)")
+    ax.set_title(f"Data efficiency on {task} (cf. ICML 2011 Fig. 5)", fontsize=10)
+    fig.text(0.01, 0.005, "bar: median over seeds (unsolved = ∞); line: 25–75 %; dots: seeds; △ / hatched: unsolved (> interaction used); grey: literature",
+             va="bottom", fontsize=6)
+    if not rows:
+        ax.text(0.5, 0.5, f"no runs on {task}", transform=ax.transAxes, ha="center")
+    fig.tight_layout(rect=(0, 0.03, 1, 1))
+    fig.savefig(path)
+    plt.close(fig)
+    return path
+
+
+# ---------------------------------------------------------------------------------------------
+# learning curves
+# ---------------------------------------------------------------------------------------------
+
+
+def hold_on_grid(x: np.ndarray, y: np.ndarray, grid: np.ndarray) -> np.ndarray:
+    """Zero-order hold of hand-over values on ``grid``: the value of the last hand-over at or
+    before each grid point (the policy in hand), NaN before the first, held after the last."""
+    x, y = np.asarray(x, dtype=np.float64), np.asarray(y, dtype=np.float64)
+    out = np.full(grid.shape, np.nan)
+    if x.size == 0:
+        return out
+    idx = np.searchsorted(x, grid, side="right") - 1
+    ok = idx >= 0
+    out[ok] = y[idx[ok]]
+    return out
+
+
+def mean_band(values: np.ndarray, reps: int = 1000, seed: int = 0, confidence: float = 0.95) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
+    """Mean over runs (axis 0, NaN = run not yet evaluated) and a percentile-bootstrap band.
+
+    ``values``: ``(runs, grid)``. Returns ``(mean, low, high)``, each ``(grid,)``.
+    """
+    rng = np.random.default_rng(seed)
+    n = values.shape[0]
+    with np.errstate(invalid="ignore"), warnings.catch_warnings():
+        warnings.simplefilter("ignore", RuntimeWarning)  # all-NaN columns: no run evaluated yet
+        mean = np.nanmean(values, axis=0)
+        draws = values[rng.integers(0, n, size=(reps, n))]  # (reps, n, grid)
+        boot = np.nanmean(draws, axis=1)
+        alpha = (1 - confidence) / 2
+        low, high = np.nanquantile(boot, alpha, axis=0), np.nanquantile(boot, 1 - alpha, axis=0)
+    return mean, low, high
+
+
+def curve_table(curves: dict[str, list[dict[str, np.ndarray]]], points: int = 80) -> list[dict[str, Any]]:
+    """Long table ``learner, interaction_s, runs_evaluated, {success,cost}_{mean,low,high}``.
+
+    Per learner, a log-spaced grid from its first to 10 % past its last hand-over; every run is
+    held constant after its last hand-over (a solved run keeps its solving policy). A learner
+    without any evaluation (every run raised before its first hand-over) has no curve.
+    """
+    rows: list[dict[str, Any]] = []
+    for label, histories in curves.items():
+        histories = [h for h in histories if h["interaction_seconds"].size]
+        if not histories:
+            continue
+        x_min = min(float(h["interaction_seconds"][0]) for h in histories)
+        x_max = max(float(h["interaction_seconds"][-1]) for h in histories)
+        # to 10 % past the last hand-over, so that the final values show as a step, not a point
+        grid = np.unique(np.r_[np.geomspace(max(x_min, 1e-6), max(x_max, x_min, 1e-6), points), 1.1 * x_max])
+        stats = {}
+        for key, name in (("eval_success_rate", "success"), ("eval_cost", "cost")):
+            values = np.stack([hold_on_grid(h["interaction_seconds"], h[key], grid) for h in histories])
+            stats[name] = mean_band(values)
+            evaluated = np.sum(np.isfinite(values), axis=0)
+        for j, x in enumerate(grid):
+            rows.append({"learner": label, "interaction_s": float(x), "runs_evaluated": int(evaluated[j]),
+                         **{f"{name}_{part}": float(stats[name][k][j]) for name in ("success", "cost") for k, part in enumerate(("mean", "low", "high"))}})
+    return rows
+
+
+def plot_curves(rows: Sequence[dict[str, Any]], path: Path, task: str) -> Path:
+    """Two panels (success rate, cost) vs interaction seconds (log), one line + band per learner."""
+    plt = _plt()
+    fig, axes = plt.subplots(1, 2, figsize=(10, 3.8), dpi=120)
+    labels = list(dict.fromkeys(r["learner"] for r in rows))
+    for label in labels:
+        sub = [r for r in rows if r["learner"] == label]
+        x = np.array([r["interaction_s"] for r in sub])
+        for ax, name in zip(axes, ("success", "cost")):
+            mean = np.array([r[f"{name}_mean"] for r in sub])
+            line, = ax.step(x, mean, where="post", label=f"{label} (n={max(r['runs_evaluated'] for r in sub)})")
+            ax.fill_between(x, [r[f"{name}_low"] for r in sub], [r[f"{name}_high"] for r in sub], step="post", color=line.get_color(), alpha=0.2)
+    axes[0].set(ylabel="evaluation success rate", ylim=(-0.03, 1.03))
+    axes[1].set(ylabel="evaluation cost (sum over the episode)")
+    for ax in axes:
+        ax.set_xscale("log")
+        _plain_log_ticks(ax.xaxis)
+        ax.set_xlabel("interaction [s] (log)")
+    if labels:
+        axes[0].legend(fontsize=7, loc="upper left")
+    else:
+        axes[0].text(0.5, 0.5, "no evaluations logged", transform=axes[0].transAxes, ha="center")
+    fig.suptitle(f"{task}: mean over seeds with 95 % bootstrap band (policy in hand held between hand-overs)", fontsize=9)
+    fig.tight_layout()
+    fig.savefig(path)
+    plt.close(fig)
+    return path

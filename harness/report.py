@@ -1,0 +1,485 @@
+"""``harness report``: tables and figures from the MLflow store alone (nothing is re-run).
+
+Reads the sweeps' child runs (see :mod:`harness.sweep` for the layout) and writes into ``out``:
+
+* ``comparison_<task>.md`` / ``.csv``: learner x {solved seeds, median and IQM of interaction
+  time to success with 95 % stratified-bootstrap CIs, trials to success, wall time};
+* ``table1.md`` / ``.csv``: the paper's Table 1 (state dimension, trials, experience, policy
+  parameters) measured, median [range], beside the paper's values;
+* ``fig5.png`` / ``fig5.csv``: interaction time to learn cart-pole, log axis, one bar per learner
+  (and literature rows from ``literature_fig5.csv``, each with its source);
+* ``curves_<task>.png`` / ``.csv``: evaluation success rate and cost vs interaction seconds;
+* ``sweeps.md``: which sweeps (ids, commands, store) the files were made from.
+
+Which run counts for a cell: the newest FINISHED child of the cell, else the newest child. A cell
+whose counted run FAILED (the learner raised) counts as unsolved and is listed under "errors";
+a cell still RUNNING or KILLED is not counted and is listed as incomplete; a cell of the sweep's
+spec without any run is listed as missing. Nothing is dropped without being named.
+
+When sweep ids are given, each sweep's rows are also logged on its parent run with
+``log_table`` (``report/comparison.json``), beside the markdown tables.
+"""
+
+from __future__ import annotations
+
+import csv
+import math
+from collections import defaultdict
+from collections.abc import Sequence
+from dataclasses import dataclass, field
+from pathlib import Path
+from typing import Any
+
+import numpy as np
+
+from harness.errors import HarnessError
+from harness.statistics import bootstrap_ci, iqm, median, times_with_failures
+from harness.sweep import ERROR_TAG, ROLE_TAG, SWEEP_EXPERIMENT, SWEEP_TAG, _search_all, parse_seeds
+
+#: bootstrap settings used for every CI in a report (seeded: the same store gives the same report)
+BOOTSTRAP_REPS = 10_000
+BOOTSTRAP_SEED = 0
+
+#: ICML 2011 Table 1, per harness task name: (paper task name, state space, # trials, experience, parameters)
+PAPER_TABLE1: dict[str, tuple[str, str, str, str, str]] = {
+    "cartpole": ("cart-pole", "R^4", "<= 10", "~ 20 s", "R^305"),
+    "double-pendulum": ("cart-double-pole", "R^6", "20-30", "~ 60-90 s", "R^1816"),
+    "unicycle": ("unicycle", "R^12", "~ 20", "~ 20-30 s", "R^28"),
+}
+
+
+@dataclass
+class SweepInfo:
+    """A sweep's parent run."""
+
+    sweep_id: str
+    parent_run_id: str
+    params: dict[str, str]
+    status: str
+
+    def expected_cells(self) -> set[tuple[str, str, int]]:
+        try:
+            learners = [s for s in self.params["learners"].split(",") if s]
+            tasks = [s for s in self.params["tasks"].split(",") if s]
+            seeds = parse_seeds(self.params["seeds"])
+        except (KeyError, HarnessError):
+            return set()
+        return {(l, t, s) for l in learners for t in tasks for s in seeds}
+
+
+@dataclass
+class RunRecord:
+    """One child run as the report needs it (from its tags, params and final metrics)."""
+
+    run_id: str
+    sweep_id: str
+    learner: str
+    task: str
+    seed: int
+    status: str
+    start_time: int
+    solved: bool
+    stop_reason: str
+    time_to_success: float | None
+    trials_to_success: float | None
+    interaction_seconds: float
+    wall_seconds: float
+    policy_parameters: float | None
+    state_dim: int | None
+    error: str = ""
+    label: str = ""
+
+    @property
+    def cell(self) -> tuple[str, str, int]:
+        return (self.learner, self.task, self.seed)
+
+
+def _metric(metrics: dict[str, float], key: str) -> float | None:
+    value = metrics.get(key)
+    return None if value is None or not math.isfinite(value) else float(value)
+
+
+def record_from_run(run, sweep_id: str) -> RunRecord | None:
+    """A :class:`RunRecord` from an MLflow ``Run`` (``None`` if it is not a sweep cell)."""
+    tags, metrics, params = run.data.tags, run.data.metrics, run.data.params
+    try:
+        learner, task, seed = tags["learner"], tags["task"], int(tags["seed"])
+    except (KeyError, ValueError):
+        return None
+    solved = tags.get("solved") == "true" and run.info.status == "FINISHED"
+    state_dim = params.get("spec.state_dim")
+    return RunRecord(
+        run_id=run.info.run_id, sweep_id=sweep_id, learner=learner, task=task, seed=seed,
+        status=run.info.status, start_time=int(run.info.start_time or 0), solved=solved,
+        stop_reason=tags.get("stop_reason", run.info.status.lower()),
+        time_to_success=_metric(metrics, "interaction_time_to_success") if solved else None,
+        trials_to_success=_metric(metrics, "trials_to_success") if solved else None,
+        interaction_seconds=_metric(metrics, "interaction_seconds_total") or _metric(metrics, "interaction_seconds") or 0.0,
+        wall_seconds=_metric(metrics, "wall_seconds_total") or _metric(metrics, "wall_seconds") or 0.0,
+        policy_parameters=_metric(metrics, "policy_parameters"),
+        state_dim=int(float(state_dim)) if state_dim not in (None, "") else None,
+        error=tags.get(ERROR_TAG, ""),
+    )
+
+
+# ---------------------------------------------------------------------------------------------
+# reading the store
+# ---------------------------------------------------------------------------------------------
+
+
+@dataclass
+class ReportData:
+    """The counted runs, and every run that was not counted, with why."""
+
+    sweeps: list[SweepInfo]
+    runs: list[RunRecord]
+    incomplete: list[RunRecord] = field(default_factory=list)
+    missing: list[tuple[str, tuple[str, str, int]]] = field(default_factory=list)
+    tracking_uri: str = ""
+
+
+def load(client, sweep_ids: Sequence[str] | None = None, tracking_uri: str = "") -> ReportData:
+    """The sweeps ``sweep_ids`` (all sweeps in the store if empty) and their counted runs."""
+    experiment = client.get_experiment_by_name(SWEEP_EXPERIMENT)
+    if experiment is None:
+        raise HarnessError(f"no sweeps in the tracking store {tracking_uri or '(default)'}; run `harness sweep` first or pass --tracking-uri")
+    parents = _search_all(client, experiment.experiment_id, f"tags.`{ROLE_TAG}` = 'sweep'")
+    by_id: dict[str, Any] = {}
+    for run in sorted(parents, key=lambda r: r.info.start_time):
+        by_id.setdefault(run.data.tags[SWEEP_TAG], run)
+    wanted = list(sweep_ids) if sweep_ids else list(by_id)
+    unknown = [s for s in wanted if s not in by_id]
+    if unknown:
+        raise HarnessError(f"unknown sweep id {', '.join(unknown)}; sweeps in this store: {', '.join(by_id) or '(none)'}")
+    sweeps = [SweepInfo(s, by_id[s].info.run_id, dict(by_id[s].data.params), by_id[s].info.status) for s in wanted]
+
+    data = ReportData(sweeps, [], tracking_uri=tracking_uri)
+    for sweep in sweeps:
+        children = _search_all(client, experiment.experiment_id, f"tags.`mlflow.parentRunId` = '{sweep.parent_run_id}'")
+        per_cell: dict[tuple[str, str, int], list[RunRecord]] = defaultdict(list)
+        for run in children:
+            record = record_from_run(run, sweep.sweep_id)
+            if record is not None:
+                per_cell[record.cell].append(record)
+        for cell, records in per_cell.items():
+            chosen = select_run(records)
+            (data.runs if chosen.status in ("FINISHED", "FAILED") else data.incomplete).append(chosen)
+        data.missing += [(sweep.sweep_id, c) for c in sorted(sweep.expected_cells() - set(per_cell))]
+    order = {(s.sweep_id, l): (i, j) for i, s in enumerate(sweeps) for j, l in enumerate(s.params.get("learners", "").split(","))}
+    for records in (data.runs, data.incomplete):
+        records.sort(key=lambda r: (order.get((r.sweep_id, r.learner), (len(sweeps), 0)), r.learner, r.task, r.seed))
+    _label(data.runs + data.incomplete)
+    return data
+
+
+def select_run(records: Sequence[RunRecord]) -> RunRecord:
+    """The newest FINISHED run of a cell, else the newest run."""
+    finished = [r for r in records if r.status == "FINISHED"]
+    return max(finished or records, key=lambda r: r.start_time)
+
+
+def _label(records: Sequence[RunRecord]) -> None:
+    """Row label = learner; ``learner@<sweep id>`` where a learner-task pair is in several sweeps."""
+    sweeps_of: dict[tuple[str, str], set[str]] = defaultdict(set)
+    for r in records:
+        sweeps_of[(r.learner, r.task)].add(r.sweep_id)
+    for r in records:
+        r.label = r.learner if len(sweeps_of[(r.learner, r.task)]) == 1 else f"{r.learner}@{r.sweep_id}"
+
+
+def groups(runs: Sequence[RunRecord]) -> dict[str, dict[str, list[RunRecord]]]:
+    """``task -> label -> runs`` (sorted by seed), tasks and labels in first-seen order."""
+    out: dict[str, dict[str, list[RunRecord]]] = {}
+    for r in runs:
+        out.setdefault(r.task, {}).setdefault(r.label, []).append(r)
+    for by_label in out.values():
+        for rs in by_label.values():
+            rs.sort(key=lambda r: r.seed)
+    return out
+
+
+# ---------------------------------------------------------------------------------------------
+# tables
+# ---------------------------------------------------------------------------------------------
+
+
+def _range(values: Sequence[float]) -> tuple[float, float, float]:
+    if not values:
+        return (math.nan, math.nan, math.nan)
+    arr = np.asarray(values, dtype=np.float64)
+    return float(np.median(arr)), float(arr.min()), float(arr.max())
+
+
+def comparison_row(task: str, label: str, runs: Sequence[RunRecord], reps: int = BOOTSTRAP_REPS, seed: int = BOOTSTRAP_SEED) -> dict[str, Any]:
+    """One learner on one task over its seeds; unsolved runs are +inf in the time statistics."""
+    times = times_with_failures([r.solved for r in runs], [r.time_to_success for r in runs])
+    solved = [r for r in runs if r.solved]
+    unsolved = [r for r in runs if not r.solved]
+    med_lo, med_hi = bootstrap_ci(times, median, reps=reps, seed=seed)
+    iqm_lo, iqm_hi = bootstrap_ci(times, iqm, reps=reps, seed=seed)
+    trials = _range([r.trials_to_success for r in solved if r.trials_to_success is not None])
+    wall = _range([r.wall_seconds for r in runs])
+    return {
+        "task": task,
+        "learner": label,
+        "sweep_id": ",".join(sorted({r.sweep_id for r in runs})),
+        "runs": len(runs),
+        "solved": len(solved),
+        "errors": sum(r.status == "FAILED" for r in runs),
+        "median_time_to_success_s": float(median(times)),
+        "median_ci_low_s": med_lo,
+        "median_ci_high_s": med_hi,
+        "iqm_time_to_success_s": float(iqm(times)),
+        "iqm_ci_low_s": iqm_lo,
+        "iqm_ci_high_s": iqm_hi,
+        "trials_to_success_median": trials[0],
+        "trials_to_success_min": trials[1],
+        "trials_to_success_max": trials[2],
+        "unsolved_interaction_min_s": min((r.interaction_seconds for r in unsolved), default=math.nan),
+        "unsolved_interaction_max_s": max((r.interaction_seconds for r in unsolved), default=math.nan),
+        "wall_seconds_median": wall[0],
+        "wall_seconds_min": wall[1],
+        "wall_seconds_max": wall[2],
+        "seeds": " ".join(str(r.seed) for r in runs),
+        "run_ids": " ".join(r.run_id for r in runs),
+    }
+
+
+def fmt_seconds(value: float) -> str:
+    if value is None or (isinstance(value, float) and math.isnan(value)):
+        return "–"
+    if math.isinf(value):
+        return "∞"
+    return f"{value:.1f}"
+
+
+def _fmt_stat(point: float, low: float, high: float) -> str:
+    if math.isinf(point):
+        return f"not reached [{fmt_seconds(low)}, {fmt_seconds(high)}]"
+    return f"{point:.1f} [{fmt_seconds(low)}, {fmt_seconds(high)}]"
+
+
+def _num(value: float) -> str:
+    """Integers as such (``305``), other numbers with one decimal (``1.5``)."""
+    return f"{value:.0f}" if float(value).is_integer() else f"{value:.1f}"
+
+
+def _seconds(value: float) -> str:
+    return f"{value:.1f}"
+
+
+def _fmt_range(med: float, lo: float, hi: float, fmt=_num) -> str:
+    if math.isnan(med):
+        return "–"
+    return f"{fmt(med)} [{fmt(lo)}–{fmt(hi)}]"
+
+
+STAT_NOTE = (
+    "Interaction time to success in seconds of system time. Unsolved runs (limits reached, or the "
+    "learner raised: 'errors') count as +∞, never dropped: a median is finite only if more than half "
+    "of the runs solved, the IQM (mean of the middle 50 %) only if at most ⌊n/4⌋ runs are unsolved; "
+    "'not reached' marks an infinite statistic. 95 % CIs: percentile bootstrap over seeds "
+    f"({BOOTSTRAP_REPS} resamples, seed {BOOTSTRAP_SEED}, order-statistic bounds). Trials to success "
+    "= interaction episodes, initial random ones included, over the solved runs: median [min–max]."
+)
+
+
+def comparison_markdown(task: str, rows: Sequence[dict[str, Any]]) -> str:
+    lines = [f"## {task}", "", STAT_NOTE, "",
+             "| learner | solved | median time to success [95 % CI] (s) | IQM [95 % CI] (s) | trials to success | unsolved at (s) | wall time (s) | errors |",
+             "|---|---|---|---|---|---|---|---|"]
+    for r in rows:
+        censored = "–" if math.isnan(r["unsolved_interaction_min_s"]) else (
+            f"{r['unsolved_interaction_min_s']:.1f}" if r["unsolved_interaction_min_s"] == r["unsolved_interaction_max_s"]
+            else f"{r['unsolved_interaction_min_s']:.1f}–{r['unsolved_interaction_max_s']:.1f}")
+        lines.append(
+            f"| {r['learner']} | {r['solved']}/{r['runs']} "
+            f"| {_fmt_stat(r['median_time_to_success_s'], r['median_ci_low_s'], r['median_ci_high_s'])} "
+            f"| {_fmt_stat(r['iqm_time_to_success_s'], r['iqm_ci_low_s'], r['iqm_ci_high_s'])} "
+            f"| {_fmt_range(r['trials_to_success_median'], r['trials_to_success_min'], r['trials_to_success_max'])} "
+            f"| {censored} | {_fmt_range(r['wall_seconds_median'], r['wall_seconds_min'], r['wall_seconds_max'], fmt=_seconds)} | {r['errors']} |"
+        )
+    return "\n".join(lines) + "\n"
+
+
+def table1_rows(runs_by_task: dict[str, dict[str, list[RunRecord]]], learner: str) -> list[dict[str, Any]]:
+    """Table 1 measured for ``learner`` on the paper's tasks that were run."""
+    rows = []
+    for task, (paper_task, p_state, p_trials, p_exp, p_params) in PAPER_TABLE1.items():
+        runs = runs_by_task.get(task, {}).get(learner)
+        if not runs:
+            continue
+        solved = [r for r in runs if r.solved]
+        dims = sorted({r.state_dim for r in runs if r.state_dim is not None})
+        rows.append({
+            "task": task, "paper_task": paper_task, "runs": len(runs), "solved": len(solved),
+            "state_dim": "/".join(str(d) for d in dims) or "?",
+            "trials": _range([r.trials_to_success for r in solved if r.trials_to_success is not None]),
+            "experience_s": _range([r.time_to_success for r in solved if r.time_to_success is not None]),
+            "policy_parameters": _range([r.policy_parameters for r in runs if r.policy_parameters is not None]),
+            "paper": {"state": p_state, "trials": p_trials, "experience": p_exp, "parameters": p_params},
+        })
+    return rows
+
+
+def table1_markdown(rows: Sequence[dict[str, Any]], learner: str) -> str:
+    lines = [
+        f"# Table 1 (Deisenroth & Rasmussen, ICML 2011): measured for `{learner}`, median [min–max] over seeds",
+        "",
+        "Trials and experience are over the **solved** runs only; the `solved` column says how many of "
+        "the runs that is (unsolved runs have no time to success; see the comparison tables for "
+        "statistics that count them). Trials = interaction episodes up to the first solved evaluation, "
+        "the initial random ones included. Experience = interaction time to success (system seconds). "
+        "Parameters = the policy's parameter count logged by the learner (`policy_parameters`).",
+        "",
+        "| task | solved | state space (ours / paper) | # trials (ours / paper) | experience in s (ours / paper) | policy parameters (ours / paper) |",
+        "|---|---|---|---|---|---|",
+    ]
+    for r in rows:
+        p = r["paper"]
+        params = r["policy_parameters"]
+        lines.append(
+            f"| {r['task']} ({r['paper_task']}) | {r['solved']}/{r['runs']} | R^{r['state_dim']} / {p['state']} "
+            f"| {_fmt_range(*r['trials'])} / {p['trials']} | {_fmt_range(*r['experience_s'], fmt=_seconds)} / {p['experience']} "
+            f"| {'R^' + _fmt_range(*params) if not math.isnan(params[0]) else '–'} / {p['parameters']} |"
+        )
+    if not rows:
+        lines.append(f"| (no runs of `{learner}` on cartpole, double-pendulum or unicycle in the selected sweeps) | | | | | |")
+    return "\n".join(lines) + "\n"
+
+
+def _flat_table1(rows: Sequence[dict[str, Any]]) -> list[dict[str, Any]]:
+    out = []
+    for r in rows:
+        flat = {"task": r["task"], "paper_task": r["paper_task"], "runs": r["runs"], "solved": r["solved"], "state_dim": r["state_dim"]}
+        for key in ("trials", "experience_s", "policy_parameters"):
+            flat[f"{key}_median"], flat[f"{key}_min"], flat[f"{key}_max"] = r[key]
+        flat.update({f"paper_{k}": v for k, v in r["paper"].items()})
+        out.append(flat)
+    return out
+
+
+TABLE1_FIELDS = ["task", "paper_task", "runs", "solved", "state_dim"] + [
+    f"{key}_{part}" for key in ("trials", "experience_s", "policy_parameters") for part in ("median", "min", "max")
+] + ["paper_state", "paper_trials", "paper_experience", "paper_parameters"]
+
+
+def write_csv(path: Path, rows: Sequence[dict[str, Any]], fields: Sequence[str] | None = None) -> Path:
+    """``rows`` as CSV (``inf``/``nan`` written as such); a header only if there are no rows."""
+    fieldnames = list(rows[0]) if rows else list(fields or [])
+    with open(path, "w", newline="") as fh:
+        writer = csv.DictWriter(fh, fieldnames=fieldnames)
+        writer.writeheader()
+        writer.writerows(rows)
+    return path
+
+
+def notes_markdown(data: ReportData) -> str:
+    """``sweeps.md``: the sweeps used, and every run or cell not counted."""
+    lines = ["# Sweeps behind these results", "", f"Tracking store: `{data.tracking_uri}`", ""]
+    for s in data.sweeps:
+        lines += [f"- sweep `{s.sweep_id}` (parent run `{s.parent_run_id}`, status {s.status}):",
+                  f"  `{s.params.get('command', '?')}`"]
+    lines.append("")
+    errored = [r for r in data.runs if r.status == "FAILED"]
+    if errored:
+        lines += ["## Runs that raised (counted as unsolved)", ""]
+        lines += [f"- {r.learner} on {r.task}, seed {r.seed} (run `{r.run_id}`): {r.error or 'FAILED'}" for r in errored]
+        lines.append("")
+    if data.incomplete:
+        lines += ["## Runs not counted (still running or killed)", ""]
+        lines += [f"- {r.learner} on {r.task}, seed {r.seed} (run `{r.run_id}`): {r.status}" for r in data.incomplete]
+        lines.append("")
+    if data.missing:
+        lines += ["## Cells of the sweeps without any run (not counted)", ""]
+        lines += [f"- sweep `{sid}`: {l} on {t}, seed {s}" for sid, (l, t, s) in data.missing]
+        lines.append("")
+    return "\n".join(lines)
+
+
+# ---------------------------------------------------------------------------------------------
+# the command
+# ---------------------------------------------------------------------------------------------
+
+
+def _json_safe(rows: Sequence[dict[str, Any]]) -> list[dict[str, Any]]:
+    return [{k: (None if isinstance(v, float) and not math.isfinite(v) else v) for k, v in r.items()} for r in rows]
+
+
+def read_literature(path: Path | None) -> list[dict[str, str]]:
+    """Rows of ``literature_fig5.csv`` (``#`` lines are comments); a row without a source is an error."""
+    if path is None or not Path(path).exists():
+        return []
+    with open(path, newline="") as fh:
+        rows = list(csv.DictReader(line for line in fh if line.strip() and not line.lstrip().startswith("#")))
+    for row in rows:
+        if not (row.get("source") or "").strip():
+            raise HarnessError(f"{path}: the row {row.get('method')!r} has no source; every literature value needs a citable source")
+        float(row["interaction_seconds"])
+    return rows
+
+
+def make_report(
+    client,
+    out: Path,
+    sweep_ids: Sequence[str] | None = None,
+    tracking_uri: str = "",
+    table1_learner: str = "pilco",
+    fig5_task: str = "cartpole",
+    literature: Path | None = None,
+) -> list[Path]:
+    """Write every table and figure into ``out`` and return the written paths."""
+    from harness import figures
+
+    data = load(client, sweep_ids, tracking_uri)
+    out = Path(out)
+    out.mkdir(parents=True, exist_ok=True)
+    written: list[Path] = []
+    by_task = groups(data.runs)
+
+    all_rows: list[dict[str, Any]] = []
+    for task, by_label in by_task.items():
+        rows = [comparison_row(task, label, runs) for label, runs in by_label.items()]
+        all_rows += rows
+        md = out / f"comparison_{task}.md"
+        md.write_text(comparison_markdown(task, rows))
+        written += [md, write_csv(out / f"comparison_{task}.csv", rows)]
+
+    t1 = table1_rows(by_task, table1_learner)
+    (out / "table1.md").write_text(table1_markdown(t1, table1_learner))
+    written += [out / "table1.md", write_csv(out / "table1.csv", _flat_table1(t1), TABLE1_FIELDS)]
+
+    lit = read_literature(literature if literature is not None else out / "literature_fig5.csv")
+    fig5_rows = figures.fig5_data(by_task.get(fig5_task, {}), lit)
+    written += [write_csv(out / "fig5.csv", fig5_rows), figures.plot_fig5(fig5_rows, out / "fig5.png", fig5_task)]
+
+    for task, by_label in by_task.items():
+        curves = {label: [history(client, r.run_id) for r in runs] for label, runs in by_label.items()}
+        table = figures.curve_table(curves)
+        written += [write_csv(out / f"curves_{task}.csv", table), figures.plot_curves(table, out / f"curves_{task}.png", task)]
+
+    (out / "sweeps.md").write_text(notes_markdown(data))
+    written.append(out / "sweeps.md")
+
+    if sweep_ids:
+        for sweep in data.sweeps:
+            rows = [r for r in all_rows if sweep.sweep_id in r["sweep_id"].split(",")]
+            import pandas as pd
+
+            client.log_table(sweep.parent_run_id, data=pd.DataFrame(_json_safe(rows)), artifact_file="report/comparison.json")
+            for path in written:
+                if path.suffix in (".md", ".png"):
+                    client.log_artifact(sweep.parent_run_id, str(path), "report")
+    return written
+
+
+def history(client, run_id: str) -> dict[str, np.ndarray]:
+    """Per hand-over: ``interaction_seconds``, ``eval_success_rate``, ``eval_cost`` aligned on the step."""
+    series = {}
+    for key in ("interaction_seconds", "eval_success_rate", "eval_cost"):
+        series[key] = {m.step: m.value for m in client.get_metric_history(run_id, key)}
+    steps = sorted(set(series["interaction_seconds"]) & set(series["eval_success_rate"]) & set(series["eval_cost"]))
+    return {key: np.array([series[key][s] for s in steps], dtype=np.float64) for key in series}
+
+
+__all__ = ["make_report", "load", "comparison_row", "table1_rows", "read_literature"]

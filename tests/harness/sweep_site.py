@@ -1,0 +1,106 @@
+"""A throwaway plugin distribution for sweep/report tests, visible to spawned and Ray workers.
+
+``install(root)`` writes ``root/site`` holding a module and a ``*.dist-info`` with entry points
+(what ``pip install`` would leave, without running pip), and returns the directories to put on
+``sys.path`` / ``PYTHONPATH``. Its plugins:
+
+* task ``sweep-toy``: the harness self-test task of :mod:`tests.harness.toy` (4 s per episode);
+* learner ``sweep-steps``: hands over a useless policy ``learner seed % 3`` times (one episode
+  each), then the solving one; with ``--max-trials 2`` run seeds 2, 3, 4 (learner seeds
+  ``derive_seeds(s)["learner"] % 3`` = 0, 1, 2) solve after 4 s, after 8 s, and not at all;
+* learner ``sweep-boom``: raises ``RuntimeError("boom in the learner")`` after one episode.
+"""
+
+from __future__ import annotations
+
+import os
+from concurrent.futures import Future
+from pathlib import Path
+
+REPO = Path(__file__).resolve().parents[2]
+
+MODULE = '''
+from harness.learner import Learner
+from tests.harness.toy import Proportional, ToyReach
+
+
+class SweepToy(ToyReach):
+    name = "sweep-toy"
+    description = "toy reach for sweep tests"
+
+
+class SeedSteps(Learner):
+    name = "sweep-steps"
+    description = "test learner: (learner seed % 3) useless hand-overs, then the solution"
+
+    def learn(self, interaction):
+        for _ in range(self.seed % 3):
+            interaction.rollout(Proportional(0.0))
+            yield Proportional(0.0)
+        while True:
+            interaction.rollout(Proportional(1.0))
+            yield Proportional(1.0)
+
+
+class Boom(Learner):
+    name = "sweep-boom"
+    description = "test learner: raises after one episode"
+
+    def learn(self, interaction):
+        interaction.rollout(Proportional(0.0))
+        raise RuntimeError("boom in the learner")
+        yield  # pragma: no cover
+'''
+
+ENTRY_POINTS = """[harness.learners]
+sweep-steps = sweep_test_plugins:SeedSteps
+sweep-boom = sweep_test_plugins:Boom
+
+[harness.tasks]
+sweep-toy = sweep_test_plugins:SweepToy
+"""
+
+
+def install(root: Path) -> list[str]:
+    site = Path(root) / "site"
+    dist = site / "harness_sweep_test-0.0.0.dist-info"
+    dist.mkdir(parents=True, exist_ok=True)
+    (site / "sweep_test_plugins.py").write_text(MODULE)
+    (dist / "METADATA").write_text("Metadata-Version: 2.1\nName: harness-sweep-test\nVersion: 0.0.0\n")
+    (dist / "entry_points.txt").write_text(ENTRY_POINTS)
+    return [str(site), str(REPO)]
+
+
+def activate(paths: list[str], monkeypatch) -> None:
+    """Make the plugins visible here (sys.path) and in every worker process (PYTHONPATH)."""
+    for path in reversed(paths):
+        monkeypatch.syspath_prepend(path)
+    old = os.environ.get("PYTHONPATH")
+    monkeypatch.setenv("PYTHONPATH", os.pathsep.join(paths + ([old] if old else [])))
+
+
+class InlinePool:
+    """Runs each cell in the calling process (``monkeypatch.setattr(sweep, "LocalPool", InlinePool)``):
+    the driver and the worker function are the real ones, only the process pool is left out."""
+
+    def __init__(self, workers: int) -> None:
+        self.workers = 1
+
+    def submit(self, job):
+        from harness.sweep import run_cell
+
+        future = Future()
+        future.set_result(run_cell(job))
+        return future
+
+    def wait(self, handles, timeout):
+        return list(handles)
+
+    def result(self, handle):
+        return handle.result()
+
+    def recover(self) -> None:
+        pass
+
+    def close(self, cancel: bool) -> None:
+        pass

@@ -1,0 +1,185 @@
+"""`harness report`: statistics (inf for unsolved, seeded bootstrap), and tables/figures from MLflow alone."""
+
+from __future__ import annotations
+
+import csv
+import itertools
+import json
+import math
+from pathlib import Path
+
+import numpy as np
+import pytest
+from click.testing import CliRunner
+from scipy import stats
+
+from harness import sweep
+from harness.cli import main
+from harness.errors import HarnessError
+from harness.report import RunRecord, comparison_row, read_literature, table1_markdown, table1_rows
+from harness.statistics import bootstrap_ci, iqm, median, stratified_bootstrap, times_with_failures
+from harness.sweep import SweepSpec, run_sweep
+from harness.tracking import open_client
+from tests.harness import sweep_site
+
+# ---- statistics ---------------------------------------------------------------------------------
+
+
+def test_iqm_is_scipy_trim_mean_and_inf_survives_only_if_untrimmed():
+    rng = np.random.default_rng(1)
+    for n in (1, 3, 4, 7, 10, 11):
+        x = rng.exponential(10.0, size=(5, n))
+        np.testing.assert_allclose(iqm(x), stats.trim_mean(x, 0.25, axis=1), rtol=1e-12)
+    # n = 10 trims 2 at each end: 2 unsolved runs are trimmed away, 3 are not
+    assert math.isfinite(iqm(np.r_[np.arange(8.0), np.inf, np.inf]))
+    assert iqm(np.r_[np.arange(7.0), np.inf, np.inf, np.inf]) == np.inf
+    assert median(np.array([4.0, 8.0, np.inf])) == 8.0 and median(np.array([4.0, np.inf, np.inf])) == np.inf
+    assert median(np.array([1.0, 3.0, np.inf, np.inf])) == np.inf and median(np.array([1.0, 3.0, 5.0, np.inf])) == 4.0
+
+
+def test_unsolved_runs_are_inf_never_dropped():
+    times = times_with_failures([True, False, True, False], [4.0, None, 8.0, 12.0])
+    np.testing.assert_array_equal(times, [4.0, np.inf, 8.0, np.inf])  # an unsolved run's number is ignored
+
+
+def test_bootstrap_is_seeded_and_contains_the_point_estimate():
+    rng = np.random.default_rng(0)
+    for n_unsolved in (0, 1, 4):
+        x = np.r_[rng.exponential(20.0, size=10 - n_unsolved), np.full(n_unsolved, np.inf)]
+        for statistic in (median, iqm):
+            low, high = bootstrap_ci(x, statistic, reps=4000, seed=7)
+            assert (low, high) == bootstrap_ci(x, statistic, reps=4000, seed=7)
+            assert low <= statistic(x) <= high
+            replicates = stratified_bootstrap([x], statistic, reps=4000, seed=7)
+            np.testing.assert_array_equal(replicates, stratified_bootstrap([x], statistic, reps=4000, seed=7))
+            assert not np.array_equal(replicates, stratified_bootstrap([x], statistic, reps=4000, seed=8))
+
+
+def test_bootstrap_bounds_match_the_exact_bootstrap_distribution():
+    """n = 5: all 5^5 resamples enumerated; the Monte Carlo bounds sit between the exact
+    2 % / 3 % (and 97 % / 98 %) quantiles of the exact bootstrap distribution of the IQM."""
+    x = np.array([3.0, 5.0, 6.0, 11.0, 20.0])
+    exact = np.sort(iqm(x[np.array(list(itertools.product(range(5), repeat=5)))]))
+    low, high = bootstrap_ci(x, iqm, reps=20_000, seed=3)
+    assert np.quantile(exact, 0.015) <= low <= np.quantile(exact, 0.035)
+    assert np.quantile(exact, 0.965) <= high <= np.quantile(exact, 0.985)
+
+
+def test_stratified_bootstrap_keeps_each_task_size():
+    small, large = np.array([1.0, 2.0, 3.0]), np.array([100.0, 200.0])
+    count_small = lambda v: np.sum(v < 50, axis=-1)  # noqa: E731
+    reps = stratified_bootstrap([small, large], count_small, reps=500, seed=0)
+    assert np.all(reps == 3)  # never a task's runs drawn in place of another's
+    pooled = stratified_bootstrap([np.r_[small, large]], count_small, reps=500, seed=0)
+    assert pooled.min() < 3 < pooled.max()
+
+
+def _record(seed, solved, time=None, trials=None, interaction=8.0, status="FINISHED", task="cartpole", params=305.0):
+    return RunRecord(f"run{seed}", "abc", "pilco", task, seed, status, seed, solved, "solved" if solved else "max trials",
+                     time, trials, interaction, 10.0 + seed, params, 4, label="pilco")
+
+
+def test_comparison_row_counts_unsolved_and_errors():
+    runs = [_record(0, True, 15.0, 4.0), _record(1, True, 20.0, 5.0), _record(2, False, interaction=40.0),
+            _record(3, False, interaction=3.0, status="FAILED")]
+    row = comparison_row("cartpole", "pilco", runs, reps=2000)
+    assert (row["runs"], row["solved"], row["errors"]) == (4, 2, 1)
+    assert row["median_time_to_success_s"] == np.inf  # [15, 20, inf, inf]: only half solved
+    assert row["iqm_time_to_success_s"] == np.inf and row["median_ci_high_s"] == np.inf
+    assert (row["trials_to_success_median"], row["trials_to_success_min"], row["trials_to_success_max"]) == (4.5, 4.0, 5.0)
+    assert (row["unsolved_interaction_min_s"], row["unsolved_interaction_max_s"]) == (3.0, 40.0)
+
+
+def test_table1_measured_beside_the_paper():
+    runs = [_record(0, True, 15.0, 4.0), _record(1, True, 25.0, 6.0), _record(2, False)]
+    rows = table1_rows({"cartpole": {"pilco": runs}}, "pilco")
+    (row,) = rows
+    assert row["trials"] == (5.0, 4.0, 6.0) and row["experience_s"] == (20.0, 15.0, 25.0)
+    assert row["policy_parameters"] == (305.0, 305.0, 305.0) and row["state_dim"] == "4"
+    md = table1_markdown(rows, "pilco")
+    assert "| cartpole (cart-pole) | 2/3 | R^4 / R^4 | 5 [4–6] / <= 10 | 20.0 [15.0–25.0] / ~ 20 s | R^305 [305–305] / R^305 |" in md
+
+
+def test_literature_rows_need_a_source(tmp_path):
+    path = tmp_path / "lit.csv"
+    path.write_text("# comment\nmethod,year,interaction_seconds,source,note\nX,2001,100,,\n")
+    with pytest.raises(HarnessError, match="'X' has no source"):
+        read_literature(path)
+    path.write_text("method,year,interaction_seconds,source,note\nX,2001,100,Some et al. 2001 Table 2,\n")
+    assert read_literature(path)[0]["interaction_seconds"] == "100"
+    assert read_literature(tmp_path / "absent.csv") == []
+
+
+# ---- end to end: a sweep's runs, then `harness report` from MLflow alone -------------------------
+
+
+@pytest.fixture(scope="module")
+def swept(tmp_path_factory):
+    """3 learners x 1 task x seeds 2-4 (see tests/harness/sweep_site.py for what each does)."""
+    from harness.tracking import default_tracking_uri
+
+    uri = default_tracking_uri(tmp_path_factory.mktemp("report-store"))
+    paths = sweep_site.install(tmp_path_factory.mktemp("report-plugins"))
+    with pytest.MonkeyPatch.context() as mp:
+        sweep_site.activate(paths, mp)
+        mp.setattr(sweep, "LocalPool", sweep_site.InlinePool)
+        spec = SweepSpec(("sweep-steps", "random", "sweep-boom"), ("sweep-toy",), (2, 3, 4), max_trials=2, eval_episodes=2)
+        result = run_sweep(spec, uri)
+    return uri, result
+
+
+def read_rows(path: Path) -> dict[str, dict[str, str]]:
+    with open(path) as fh:
+        return {row.get("learner") or row["label"]: row for row in csv.DictReader(fh)}
+
+
+def test_report_regenerates_tables_and_figures_from_mlflow(swept, tmp_path):
+    uri, result = swept
+    out = tmp_path / "results"
+    cli = CliRunner().invoke(main, ["report", "--tracking-uri", uri, "--sweep", result.sweep_id, "--out", str(out), "--fig5-task", "sweep-toy"])
+    assert cli.exit_code == 0, cli.output
+    for name in ("comparison_sweep-toy.md", "comparison_sweep-toy.csv", "table1.md", "table1.csv", "fig5.png", "fig5.csv",
+                 "curves_sweep-toy.png", "curves_sweep-toy.csv", "sweeps.md"):
+        assert (out / name).stat().st_size > 0, name
+
+    rows = read_rows(out / "comparison_sweep-toy.csv")
+    steps = rows["sweep-steps"]  # times to success 4, 8 and one unsolved run (inf)
+    assert (steps["runs"], steps["solved"], steps["errors"]) == ("3", "2", "0")
+    assert float(steps["median_time_to_success_s"]) == 8.0 and float(steps["iqm_time_to_success_s"]) == math.inf
+    assert float(steps["median_ci_low_s"]) <= 8.0 <= float(steps["median_ci_high_s"])
+    assert (float(steps["trials_to_success_min"]), float(steps["trials_to_success_max"])) == (1.0, 2.0)
+    assert float(steps["unsolved_interaction_min_s"]) == 8.0
+    assert (rows["random"]["runs"], rows["random"]["solved"]) == ("3", "0")
+    assert float(rows["random"]["median_time_to_success_s"]) == math.inf
+    boom = rows["sweep-boom"]  # the learner raised: counted as unsolved and named, not dropped
+    assert (boom["runs"], boom["solved"], boom["errors"]) == ("3", "0", "3")
+    assert "| sweep-steps | 2/3 | 8.0 [" in (out / "comparison_sweep-toy.md").read_text()
+    notes = (out / "sweeps.md").read_text()
+    assert "sweep-boom on sweep-toy, seed 3" in notes and "RuntimeError: boom in the learner" in notes
+    assert SweepSpec(("sweep-steps", "random", "sweep-boom"), ("sweep-toy",), (2, 3, 4), max_trials=2, eval_episodes=2).command() in notes
+
+    fig5 = read_rows(out / "fig5.csv")
+    assert fig5["sweep-steps"]["seed_times_s"] == "4 8 inf" and float(fig5["sweep-steps"]["censored_at_s"]) == 8.0
+
+    # learning curves: success rate held between hand-overs; seeds 2, 3, 4 succeed from 4 s, from 8 s, never
+    with open(out / "curves_sweep-toy.csv") as fh:
+        curve = [r for r in csv.DictReader(fh) if r["learner"] == "sweep-steps"]
+    at = {float(r["interaction_s"]): float(r["success_mean"]) for r in curve}
+    assert at[4.0] == pytest.approx(1 / 3) and at[8.0] == pytest.approx(2 / 3)
+
+    # the rows of this sweep are logged on its parent run
+    client = open_client(uri)
+    local = client.download_artifacts(result.parent_run_id, "report/comparison.json", str(tmp_path))
+    logged = json.loads(Path(local).read_text())
+    table = {row[logged["columns"].index("learner")]: dict(zip(logged["columns"], row)) for row in logged["data"]}
+    assert table["sweep-steps"]["median_time_to_success_s"] == 8.0 and table["sweep-steps"]["iqm_time_to_success_s"] is None
+    assert {a.path for a in client.list_artifacts(result.parent_run_id, "report")} >= {"report/comparison.json", "report/fig5.png"}
+
+
+def test_report_is_deterministic_and_rejects_unknown_sweeps(swept, tmp_path):
+    uri, result = swept
+    for out in ("a", "b"):
+        assert CliRunner().invoke(main, ["report", "--tracking-uri", uri, "--out", str(tmp_path / out)]).exit_code == 0
+    assert (tmp_path / "a" / "comparison_sweep-toy.csv").read_text() == (tmp_path / "b" / "comparison_sweep-toy.csv").read_text()
+    bad = CliRunner().invoke(main, ["report", "--tracking-uri", uri, "--sweep", "000000000000", "--out", str(tmp_path / "c")])
+    assert bad.exit_code == 2 and f"unknown sweep id 000000000000; sweeps in this store: {result.sweep_id}" in bad.stderr
