@@ -255,8 +255,10 @@ def sweep_command(
 @click.option("--table1-learner", default="pilco", show_default=True, help="Learner whose runs fill Table 1.")
 @click.option("--fig5-task", default="cartpole", show_default=True, help="Task of the Fig. 5 bar chart.")
 @click.option("--literature", default=None, type=click.Path(dir_okay=False), help="Sourced literature values for Fig. 5 (default: OUT/literature_fig5.csv if present).")
+@click.option("--include-bench", is_flag=True, help="Also report `harness bench` runs, grouped by configuration as pseudo-sweeps bench-<hash>.")
 @_guarded
-def report_command(tracking_uri: str | None, sweeps: tuple[str, ...], out: str, table1_learner: str, fig5_task: str, literature: str | None) -> None:
+def report_command(tracking_uri: str | None, sweeps: tuple[str, ...], out: str, table1_learner: str, fig5_task: str,
+                   literature: str | None, include_bench: bool) -> None:
     """Comparison tables, Table 1, Fig. 5 and learning curves from MLflow alone (nothing is re-run)."""
     from pathlib import Path
 
@@ -265,7 +267,7 @@ def report_command(tracking_uri: str | None, sweeps: tuple[str, ...], out: str, 
 
     uri = resolve_tracking_uri(tracking_uri)
     written = make_report(open_client(uri), Path(out), list(sweeps) or None, uri, table1_learner, fig5_task,
-                          Path(literature) if literature else None)
+                          Path(literature) if literature else None, include_bench)
     for path in written:
         click.echo(str(path))
     if sweeps:

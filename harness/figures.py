@@ -26,13 +26,17 @@ def _plt():
     return plt
 
 
-def _plain_log_ticks(axis) -> None:
-    """Log-scale ticks written as plain numbers (``20``, ``0.5``) rather than ``2 x 10^1``."""
-    from matplotlib.ticker import FuncFormatter
+def _plain_log_ticks(axis, low: float, high: float) -> None:
+    """Log-scale ticks written as plain numbers (``20``, ``0.5``) rather than ``2 x 10^1``;
+    minor ticks labelled only when the axis spans less than about one decade."""
+    from matplotlib.ticker import FuncFormatter, LogLocator, NullFormatter
 
     plain = FuncFormatter(lambda v, _: f"{v:g}")
+    span = high / max(low, 1e-12)
+    if 12 <= span < 1000:
+        axis.set_major_locator(LogLocator(base=10, subs=(1.0, 2.0, 5.0)))
     axis.set_major_formatter(plain)
-    axis.set_minor_formatter(plain)
+    axis.set_minor_formatter(plain if span < 12 else NullFormatter())
 
 
 # ---------------------------------------------------------------------------------------------
@@ -72,6 +76,14 @@ def fig5_data(by_label: dict[str, Sequence[Any]], literature: Sequence[dict[str,
     return rows
 
 
+def _median_text(row: dict[str, Any]) -> str:
+    med = row["median_s"]
+    if math.isfinite(med):
+        return f"{med:.3g} s"
+    censored = row["censored_at_s"]
+    return f"> {censored:.3g} s" if isinstance(censored, float) and math.isfinite(censored) else "not reached"
+
+
 def plot_fig5(rows: Sequence[dict[str, Any]], path: Path, task: str) -> Path:
     """Bars on a log axis: median time to success; whiskers = quartiles; dots = seeds.
 
@@ -89,7 +101,6 @@ def plot_fig5(rows: Sequence[dict[str, Any]], path: Path, task: str) -> Path:
         med = r["median_s"]
         if math.isfinite(med):
             ax.bar(i, med, color=color, alpha=0.85, width=0.6)
-            ax.text(i, med * 1.15, f"{med:.3g} s", ha="center", va="bottom", fontsize=7)
             if ours:
                 q75 = r["q75_s"] if math.isfinite(r["q75_s"]) else top * 3
                 ax.plot([i, i], [r["q25_s"], q75], color="k", lw=1.2)
@@ -97,7 +108,6 @@ def plot_fig5(rows: Sequence[dict[str, Any]], path: Path, task: str) -> Path:
                     ax.annotate("", (i, q75), (i, q75 / 1.6), arrowprops={"arrowstyle": "->", "lw": 1.2})
         elif ours and math.isfinite(r["censored_at_s"]):
             ax.bar(i, r["censored_at_s"], color="none", edgecolor=color, hatch="//", width=0.6)
-            ax.text(i, r["censored_at_s"] * 1.15, f"> {r['censored_at_s']:.3g} s", ha="center", va="bottom", fontsize=7)
         if ours:
             times = [float(t) for t in str(r["seed_times_s"]).split()]
             jitter = np.linspace(-0.15, 0.15, len(times)) if len(times) > 1 else [0.0]
@@ -107,18 +117,20 @@ def plot_fig5(rows: Sequence[dict[str, Any]], path: Path, task: str) -> Path:
                 elif math.isfinite(r["censored_at_s"]):
                     ax.plot(i + dx, r["censored_at_s"], "^", ms=4, mfc="none", color="k")
     values = [v for r in rows for v in (r["median_s"], r["q25_s"], r["solved_min_s"], r["censored_at_s"]) if isinstance(v, float) and math.isfinite(v) and v > 0]
-    ax.set_ylim(min(values, default=1.0) / 3, top * 8)
-    labels = [r["label"] + (f"\n{r['solved']}/{r['runs']} solved" if r["kind"] == "ours" else "") for r in rows]
+    y_low, y_high = min(values, default=1.0) / 3, top * 4
+    ax.set_ylim(y_low, y_high)
+    labels = [f"{r['label']}\n{_median_text(r)}" + (f"\n{r['solved']}/{r['runs']} solved" if r["kind"] == "ours" else "") for r in rows]
+    ax.set_xlim(-0.7, max(len(rows), 2) - 0.3)
     ax.set_xticks(range(len(rows)), labels, fontsize=8)
     ax.set_yscale("log")
-    _plain_log_ticks(ax.yaxis)
+    _plain_log_ticks(ax.yaxis, y_low, y_high)
     ax.set_ylabel("interaction time to success [s] (log)")
     ax.set_title(f"Data efficiency on {task} (cf. ICML 2011 Fig. 5)", fontsize=10)
-    fig.text(0.01, 0.005, "bar: median over seeds (unsolved = ∞); line: 25–75 %; dots: seeds; △ / hatched: unsolved (> interaction used); grey: literature",
-             va="bottom", fontsize=6)
+    fig.text(0.01, 0.005, "bar: median over seeds (unsolved = ∞); line: 25–75 %; dots: seeds\n"
+             "△ / hatched: unsolved (> interaction used); grey: literature (literature_fig5.csv)", va="bottom", fontsize=6)
     if not rows:
         ax.text(0.5, 0.5, f"no runs on {task}", transform=ax.transAxes, ha="center")
-    fig.tight_layout(rect=(0, 0.03, 1, 1))
+    fig.tight_layout(rect=(0, 0.05, 1, 1))
     fig.savefig(path)
     plt.close(fig)
     return path
@@ -200,9 +212,10 @@ def plot_curves(rows: Sequence[dict[str, Any]], path: Path, task: str) -> Path:
             ax.fill_between(x, [r[f"{name}_low"] for r in sub], [r[f"{name}_high"] for r in sub], step="post", color=line.get_color(), alpha=0.2)
     axes[0].set(ylabel="evaluation success rate", ylim=(-0.03, 1.03))
     axes[1].set(ylabel="evaluation cost (sum over the episode)")
+    xs = [r["interaction_s"] for r in rows] or [1.0]
     for ax in axes:
         ax.set_xscale("log")
-        _plain_log_ticks(ax.xaxis)
+        _plain_log_ticks(ax.xaxis, min(xs), max(xs))
         ax.set_xlabel("interaction [s] (log)")
     if labels:
         axes[0].legend(fontsize=7, loc="upper left")

@@ -11,6 +11,9 @@ Reads the sweeps' child runs (see :mod:`harness.sweep` for the layout) and write
 * ``curves_<task>.png`` / ``.csv``: evaluation success rate and cost vs interaction seconds;
 * ``sweeps.md``: which sweeps (ids, commands, store) the files were made from.
 
+With ``include_bench``, `harness bench` runs outside sweeps are reported too, grouped by
+configuration (learner, task, limits, resolved options) into pseudo-sweeps ``bench-<hash>``.
+
 Which run counts for a cell: the newest FINISHED child of the cell, else the newest child. A cell
 whose counted run FAILED (the learner raised) counts as unsolved and is listed under "errors";
 a cell still RUNNING or KILLED is not counted and is listed as incomplete; a cell of the sweep's
@@ -23,6 +26,8 @@ When sweep ids are given, each sweep's rows are also logged on its parent run wi
 from __future__ import annotations
 
 import csv
+import hashlib
+import json
 import math
 from collections import defaultdict
 from collections.abc import Sequence
@@ -34,7 +39,7 @@ import numpy as np
 
 from harness.errors import HarnessError
 from harness.statistics import bootstrap_ci, iqm, median, times_with_failures
-from harness.sweep import ERROR_TAG, ROLE_TAG, SWEEP_EXPERIMENT, SWEEP_TAG, _search_all, parse_seeds
+from harness.sweep import ERROR_TAG, ROLE_TAG, SWEEP_EXPERIMENT, SWEEP_TAG, _search_all, format_seeds, parse_seeds
 
 #: bootstrap settings used for every CI in a report (seeded: the same store gives the same report)
 BOOTSTRAP_REPS = 10_000
@@ -138,32 +143,84 @@ class ReportData:
     tracking_uri: str = ""
 
 
-def load(client, sweep_ids: Sequence[str] | None = None, tracking_uri: str = "") -> ReportData:
-    """The sweeps ``sweep_ids`` (all sweeps in the store if empty) and their counted runs."""
+def _sweep_groups(client) -> list[tuple[SweepInfo, list]]:
+    """Every sweep in the store (oldest parent per id) with its child runs."""
     experiment = client.get_experiment_by_name(SWEEP_EXPERIMENT)
     if experiment is None:
-        raise HarnessError(f"no sweeps in the tracking store {tracking_uri or '(default)'}; run `harness sweep` first or pass --tracking-uri")
+        return []
     parents = _search_all(client, experiment.experiment_id, f"tags.`{ROLE_TAG}` = 'sweep'")
     by_id: dict[str, Any] = {}
     for run in sorted(parents, key=lambda r: r.info.start_time):
         by_id.setdefault(run.data.tags[SWEEP_TAG], run)
-    wanted = list(sweep_ids) if sweep_ids else list(by_id)
-    unknown = [s for s in wanted if s not in by_id]
-    if unknown:
-        raise HarnessError(f"unknown sweep id {', '.join(unknown)}; sweeps in this store: {', '.join(by_id) or '(none)'}")
-    sweeps = [SweepInfo(s, by_id[s].info.run_id, dict(by_id[s].data.params), by_id[s].info.status) for s in wanted]
+    out = []
+    for sweep_id, parent in by_id.items():
+        info = SweepInfo(sweep_id, parent.info.run_id, dict(parent.data.params), parent.info.status)
+        out.append((info, _search_all(client, experiment.experiment_id, f"tags.`mlflow.parentRunId` = '{parent.info.run_id}'")))
+    return out
 
+
+#: the params that make two `harness bench` runs the same configuration (besides the seed)
+_BENCH_KEYS = ("learner", "task", "max_trials", "budget_seconds", "eval_episodes")
+
+
+def _bench_groups(client) -> list[tuple[SweepInfo, list]]:
+    """`harness bench` runs (outside sweeps), grouped by configuration into pseudo-sweeps
+    ``bench-<hash>``: same learner, task, limits and resolved options; seeds vary."""
+    grouped: dict[str, list] = defaultdict(list)
+    config_of: dict[str, dict[str, str]] = {}
+    for experiment in client.search_experiments():
+        if experiment.name == SWEEP_EXPERIMENT:
+            continue
+        for run in _search_all(client, experiment.experiment_id, ""):
+            if ROLE_TAG in run.data.tags or "learner" not in run.data.tags:
+                continue
+            params = run.data.params
+            config = {k: v for k, v in params.items() if k in _BENCH_KEYS or k.startswith(("learner.", "task."))}
+            blob = json.dumps(sorted(config.items()))
+            group_id = "bench-" + hashlib.sha256(blob.encode()).hexdigest()[:8]
+            grouped[group_id].append(run)
+            config_of[group_id] = config
+    out = []
+    for group_id, runs in grouped.items():
+        c = config_of[group_id]
+        seeds = sorted({int(r.data.tags["seed"]) for r in runs if r.data.tags.get("seed", "").isdigit()})
+        limits = "".join(f" --{k.replace('_', '-')} {c[k]}" for k in ("max_trials", "budget_seconds") if c.get(k) not in (None, "None"))
+        command = (f"harness bench --learner {c.get('learner')} --task {c.get('task')} --seed S{limits}"
+                   f" --eval-episodes {c.get('eval_episodes')}  (S = {format_seeds(seeds)}; resolved options in each run's params)")
+        params = {"learners": c.get("learner", ""), "tasks": c.get("task", ""), "seeds": format_seeds(seeds), "command": command}
+        out.append((SweepInfo(group_id, "", params, "bench runs"), runs))
+    return out
+
+
+def load(client, sweep_ids: Sequence[str] | None = None, tracking_uri: str = "", include_bench: bool = False) -> ReportData:
+    """The sweeps ``sweep_ids`` (default: every sweep in the store, and with ``include_bench``
+    every group of `harness bench` runs too) and their counted runs."""
+    wanted = list(sweep_ids or [])
+    available = _sweep_groups(client)
+    if include_bench or any(s.startswith("bench-") for s in wanted):
+        available += _bench_groups(client)
+    ids = [info.sweep_id for info, _ in available]
+    unknown = [s for s in wanted if s not in ids]
+    if unknown:
+        raise HarnessError(f"unknown sweep id {', '.join(unknown)}; sweeps in this store: {', '.join(ids) or '(none)'}")
+    chosen = [(info, runs) for info, runs in available if not wanted or info.sweep_id in wanted]
+    if wanted:
+        chosen.sort(key=lambda g: wanted.index(g[0].sweep_id))
+    if not chosen:
+        hint = "" if include_bench else " (add --include-bench for `harness bench` runs)"
+        raise HarnessError(f"no sweeps in the tracking store {tracking_uri or '(default)'}{hint}; run `harness sweep` first or pass --tracking-uri")
+
+    sweeps = [info for info, _ in chosen]
     data = ReportData(sweeps, [], tracking_uri=tracking_uri)
-    for sweep in sweeps:
-        children = _search_all(client, experiment.experiment_id, f"tags.`mlflow.parentRunId` = '{sweep.parent_run_id}'")
+    for sweep, children in chosen:
         per_cell: dict[tuple[str, str, int], list[RunRecord]] = defaultdict(list)
         for run in children:
             record = record_from_run(run, sweep.sweep_id)
             if record is not None:
                 per_cell[record.cell].append(record)
         for cell, records in per_cell.items():
-            chosen = select_run(records)
-            (data.runs if chosen.status in ("FINISHED", "FAILED") else data.incomplete).append(chosen)
+            chosen_run = select_run(records)
+            (data.runs if chosen_run.status in ("FINISHED", "FAILED") else data.incomplete).append(chosen_run)
         data.missing += [(sweep.sweep_id, c) for c in sorted(sweep.expected_cells() - set(per_cell))]
     order = {(s.sweep_id, l): (i, j) for i, s in enumerate(sweeps) for j, l in enumerate(s.params.get("learners", "").split(","))}
     for records in (data.runs, data.incomplete):
@@ -378,8 +435,8 @@ def notes_markdown(data: ReportData) -> str:
     """``sweeps.md``: the sweeps used, and every run or cell not counted."""
     lines = ["# Sweeps behind these results", "", f"Tracking store: `{data.tracking_uri}`", ""]
     for s in data.sweeps:
-        lines += [f"- sweep `{s.sweep_id}` (parent run `{s.parent_run_id}`, status {s.status}):",
-                  f"  `{s.params.get('command', '?')}`"]
+        head = f"- sweep `{s.sweep_id}` (parent run `{s.parent_run_id}`, status {s.status}):" if s.parent_run_id else f"- `{s.sweep_id}`: {s.status}"
+        lines += [head, f"  `{s.params.get('command', '?')}`"]
     lines.append("")
     errored = [r for r in data.runs if r.status == "FAILED"]
     if errored:
@@ -427,11 +484,12 @@ def make_report(
     table1_learner: str = "pilco",
     fig5_task: str = "cartpole",
     literature: Path | None = None,
+    include_bench: bool = False,
 ) -> list[Path]:
     """Write every table and figure into ``out`` and return the written paths."""
     from harness import figures
 
-    data = load(client, sweep_ids, tracking_uri)
+    data = load(client, sweep_ids, tracking_uri, include_bench)
     out = Path(out)
     out.mkdir(parents=True, exist_ok=True)
     written: list[Path] = []
@@ -462,7 +520,7 @@ def make_report(
     written.append(out / "sweeps.md")
 
     if sweep_ids:
-        for sweep in data.sweeps:
+        for sweep in (s for s in data.sweeps if s.parent_run_id):  # bench groups have no parent run
             rows = [r for r in all_rows if sweep.sweep_id in r["sweep_id"].split(",")]
             import pandas as pd
 

@@ -125,7 +125,7 @@ def swept(tmp_path_factory):
         mp.setattr(sweep, "LocalPool", sweep_site.InlinePool)
         spec = SweepSpec(("sweep-steps", "random", "sweep-boom"), ("sweep-toy",), (2, 3, 4), max_trials=2, eval_episodes=2)
         result = run_sweep(spec, uri)
-    return uri, result
+    return uri, result, paths
 
 
 def read_rows(path: Path) -> dict[str, dict[str, str]]:
@@ -134,7 +134,7 @@ def read_rows(path: Path) -> dict[str, dict[str, str]]:
 
 
 def test_report_regenerates_tables_and_figures_from_mlflow(swept, tmp_path):
-    uri, result = swept
+    uri, result, _ = swept
     out = tmp_path / "results"
     cli = CliRunner().invoke(main, ["report", "--tracking-uri", uri, "--sweep", result.sweep_id, "--out", str(out), "--fig5-task", "sweep-toy"])
     assert cli.exit_code == 0, cli.output
@@ -177,9 +177,27 @@ def test_report_regenerates_tables_and_figures_from_mlflow(swept, tmp_path):
 
 
 def test_report_is_deterministic_and_rejects_unknown_sweeps(swept, tmp_path):
-    uri, result = swept
+    uri, result, _ = swept
     for out in ("a", "b"):
         assert CliRunner().invoke(main, ["report", "--tracking-uri", uri, "--out", str(tmp_path / out)]).exit_code == 0
     assert (tmp_path / "a" / "comparison_sweep-toy.csv").read_text() == (tmp_path / "b" / "comparison_sweep-toy.csv").read_text()
     bad = CliRunner().invoke(main, ["report", "--tracking-uri", uri, "--sweep", "000000000000", "--out", str(tmp_path / "c")])
     assert bad.exit_code == 2 and f"unknown sweep id 000000000000; sweeps in this store: {result.sweep_id}" in bad.stderr
+
+
+def test_bench_runs_are_grouped_by_configuration(swept, tmp_path, monkeypatch):
+    from harness.runner import RunConfig, run
+    from harness.tracking import MlflowTracker
+
+    uri, result, paths = swept
+    sweep_site.activate(paths, monkeypatch)
+    for seed, trials in ((2, 2), (3, 2), (2, 3)):  # two configurations: --max-trials 2 (seeds 2, 3) and 3 (seed 2)
+        run(RunConfig("sweep-steps", "sweep-toy", seed, max_trials=trials, eval_episodes=2), tracker=MlflowTracker(uri))
+    out = tmp_path / "bench"
+    cli = CliRunner().invoke(main, ["report", "--tracking-uri", uri, "--include-bench", "--out", str(out)])
+    assert cli.exit_code == 0, cli.output
+    rows = read_rows(out / "comparison_sweep-toy.csv")
+    assert rows[f"sweep-steps@{result.sweep_id}"]["runs"] == "3"  # the sweep's own row, kept apart
+    bench = {label: row for label, row in rows.items() if "@bench-" in label}
+    assert sorted((r["runs"], r["solved"], float(r["median_time_to_success_s"])) for r in bench.values()) == [("1", "1", 4.0), ("2", "2", 6.0)]
+    assert "harness bench --learner sweep-steps --task sweep-toy --seed S --max-trials 2 --eval-episodes 2  (S = 2-3" in (out / "sweeps.md").read_text()
