@@ -97,7 +97,9 @@ def _contract_forward(left, right, w_left, w_right, inv_k, workspace: _Workspace
     q_wr = torch.bmm(Q, w_right[..., None]).squeeze(-1)  # (P, n)
     quad = (q_wr * w_left).sum(-1)
     e = inv_k.shape[0]
-    trace = torch.linalg.vecdot(inv_k.reshape(e, n * n), Q[:e].reshape(e, n * n))
+    # sum_ij inv_k_ij Q_ij through the reused scratch buffer (a fresh product tensor is slow)
+    prod = torch.mul(inv_k, Q[:e], out=workspace.scratch_buffer((p, n, n), left.dtype)[:e])
+    trace = prod.sum((-2, -1))
     return quad, trace, Q, q_wr
 
 
