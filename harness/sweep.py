@@ -300,8 +300,10 @@ def default_workers() -> int:
 
 
 def _single_thread() -> None:
+    """One thread per cell (cells run side by side); no MLflow download bars in the sweep view."""
     for var in ("OMP_NUM_THREADS", "MKL_NUM_THREADS", "OPENBLAS_NUM_THREADS"):
         os.environ[var] = "1"
+    os.environ.setdefault("MLFLOW_ENABLE_ARTIFACTS_PROGRESS_BAR", "false")
     import sys
 
     torch = sys.modules.get("torch")
@@ -622,6 +624,23 @@ def _record_failed_child(client, job: CellJob, error: str) -> str:
     return run.info.run_id
 
 
+def _mark_crashed(client, job: CellJob, error: str) -> str:
+    """The child a dead worker left RUNNING is marked KILLED with the error (the next invocation
+    continues it from its last checkpoint); without one, a FAILED child records the error."""
+    from mlflow.entities import RunTag
+
+    cell = job.cell
+    running = _search_all(client, job.experiment_id, (
+        f"tags.`mlflow.parentRunId` = '{job.parent_run_id}' AND tags.learner = '{cell.learner}' AND tags.task = '{cell.task}' "
+        f"AND tags.seed = '{cell.seed}' AND attributes.status = 'RUNNING'"))
+    if not running:
+        return _record_failed_child(client, job, error)
+    run_id = max(running, key=lambda r: r.info.start_time).info.run_id
+    client.log_batch(run_id, tags=[RunTag(ERROR_TAG, error[:5000])])
+    client.set_terminated(run_id, "KILLED")
+    return run_id
+
+
 def run_sweep(
     spec: SweepSpec,
     tracking_uri: str | None = None,
@@ -720,7 +739,8 @@ def _drive(pool: _Pool, jobs: deque, workers: int, result: SweepResult, client, 
             try:
                 outcome = pool.result(handle)
             except Exception as exc:  # the worker process itself died (crash, out of memory, killed)
-                outcome = CellOutcome(job.cell, "failed", None, error=f"worker process died ({type(exc).__name__}: {exc}); re-run the sweep to retry")
+                error = f"worker process died ({type(exc).__name__}: {exc}); re-run the sweep to retry".splitlines()[0]
+                outcome = CellOutcome(job.cell, "failed", _mark_crashed(client, job, error), error=error)
             if outcome.status == "failed" and outcome.run_id is None:
                 outcome.run_id = _record_failed_child(client, job, outcome.error)
             durations.append(time.perf_counter() - t0)

@@ -8,7 +8,8 @@
 * learner ``sweep-steps``: hands over a useless policy ``learner seed % 3`` times (one episode
   each), then the solving one; with ``--max-trials 2`` run seeds 2, 3, 4 (learner seeds
   ``derive_seeds(s)["learner"] % 3`` = 0, 1, 2) solve after 4 s, after 8 s, and not at all;
-* learner ``sweep-boom``: raises ``RuntimeError("boom in the learner")`` after one episode.
+* learner ``sweep-boom``: raises ``RuntimeError("boom in the learner")`` after one episode;
+* learner ``sweep-crash``: its process exits (``os._exit(3)``) after one hand-over.
 """
 
 from __future__ import annotations
@@ -42,6 +43,18 @@ class SeedSteps(Learner):
             yield Proportional(1.0)
 
 
+class Crash(Learner):
+    name = "sweep-crash"
+    description = "test learner: its process dies (os._exit) after one hand-over"
+
+    def learn(self, interaction):
+        import os
+
+        interaction.rollout(Proportional(0.0))
+        yield Proportional(0.0)
+        os._exit(3)
+
+
 class Boom(Learner):
     name = "sweep-boom"
     description = "test learner: raises after one episode"
@@ -55,6 +68,7 @@ class Boom(Learner):
 ENTRY_POINTS = """[harness.learners]
 sweep-steps = sweep_test_plugins:SeedSteps
 sweep-boom = sweep_test_plugins:Boom
+sweep-crash = sweep_test_plugins:Crash
 
 [harness.tasks]
 sweep-toy = sweep_test_plugins:SweepToy

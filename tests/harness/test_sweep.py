@@ -131,6 +131,17 @@ def test_local_sweep_isolates_failures_and_resumes(plugins, mlflow_uri):
     assert [len(runs[("sweep-boom", s)]) for s in (2, 3, 4)] == [2, 2, 2]  # re-run once each
 
 
+def test_a_dying_worker_process_is_reported_and_replaced(plugins, mlflow_uri):
+    spec = SweepSpec(("sweep-crash", "sweep-steps"), ("sweep-toy",), (2,), max_trials=3, eval_episodes=1)
+    result = run_sweep(spec, mlflow_uri, executor="local", workers=1)
+    outcome = {o.cell.learner: o for o in result.outcomes}
+    assert outcome["sweep-crash"].status == "failed" and "worker process died (BrokenProcessPool" in outcome["sweep-crash"].error
+    assert outcome["sweep-steps"].status == "finished" and outcome["sweep-steps"].solved  # ran in a fresh pool
+    crashed = open_client(mlflow_uri).get_run(outcome["sweep-crash"].run_id)  # the run the dead worker had started
+    assert crashed.info.status == "KILLED" and crashed.data.tags["harness.error"].startswith("worker process died")
+    assert crashed.data.metrics["interaction_seconds"] == 4.0  # its first hand-over was logged before the crash
+
+
 def test_interrupted_child_continues_from_its_checkpoint(plugins, mlflow_uri, monkeypatch):
     monkeypatch.setattr(sweep, "LocalPool", sweep_site.InlinePool)  # in-process: the driver's logic is under test
     spec = SweepSpec(("random", "sweep-steps"), ("sweep-toy",), (5,), max_trials=3, eval_episodes=1)
@@ -153,6 +164,29 @@ def test_interrupted_child_continues_from_its_checkpoint(plugins, mlflow_uri, mo
     assert client.get_run(ids["sweep-steps"]).info.status == "KILLED"
     assert len(children_by_cell(mlflow_uri, again)[("sweep-steps", 5)]) == 2
     assert len(children_by_cell(mlflow_uri, again)[("random", 5)]) == 1
+
+
+def test_progress_view_reports_every_cell_and_the_totals(plugins, mlflow_uri, monkeypatch):
+    monkeypatch.setattr(sweep, "LocalPool", sweep_site.InlinePool)
+    from rich.console import Console
+
+    console = Console(record=True, width=200, force_terminal=False)
+    spec = SweepSpec(("sweep-steps", "sweep-boom"), ("sweep-toy",), (6,), max_trials=2, eval_episodes=1)
+    updates = []
+
+    class Recording(sweep.RichSweepProgress):
+        def update(self, done, running, failed, eta_seconds):
+            updates.append((done, running, failed, eta_seconds))
+            super().update(done, running, failed, eta_seconds)
+
+    run_sweep(spec, mlflow_uri, progress=Recording(console))
+    text = console.export_text()
+    assert "sweep-steps-sweep-toy-s6: not solved (max trials) after 8.0 s" in text
+    assert "sweep-boom-sweep-toy-s6: FAILED (RuntimeError: boom in the learner)" in text
+    assert updates[0] == (0, 1, 0, None) and updates[-1][:3] == (2, 0, 1) and updates[-1][3] == 0.0
+    run_sweep(spec, mlflow_uri, progress=Recording(console))
+    assert "1 of 2 cells already finished in an earlier invocation: skipped" in console.export_text()
+    assert sweep.format_duration(3725) == "1:02:05" and sweep.format_duration(65) == "1:05" and sweep.format_duration(None) == "–"
 
 
 # ---- Ray executor -------------------------------------------------------------------------------
