@@ -217,8 +217,9 @@ def sweep_command(
 ) -> None:
     """Run learners x tasks x seeds as child runs of one MLflow sweep run.
 
-    Re-running the same command resumes the sweep: finished cells are skipped, failed or
-    interrupted ones are run again. Exits with status 1 if any cell failed.
+    Re-running the same command resumes the sweep: finished cells are skipped, interrupted ones
+    continue from their last checkpoint, failed ones run again. Exits with status 1 if any cell
+    failed.
     """
     from harness.options import parse_assignments
     from harness.sweep import RichSweepProgress, SilentSweepProgress, SweepSpec, parse_names, parse_seeds, run_sweep
@@ -232,6 +233,11 @@ def sweep_command(
         budget_seconds=_parse_budget(budget_seconds),
         eval_episodes=eval_episodes,
     )
+    from harness.tracking import resolve_tracking_uri
+
+    if address and resolve_tracking_uri(tracking_uri).startswith("sqlite:"):
+        click.echo(f"note: Ray workers on other machines must reach {resolve_tracking_uri(tracking_uri)} (a shared filesystem); "
+                   "otherwise run `mlflow server` and pass --tracking-uri http://HOST:5000", err=True)
     progress = SilentSweepProgress() if quiet else RichSweepProgress()
     result = run_sweep(spec, tracking_uri=tracking_uri, executor=executor, workers=workers, address=address, progress=progress)
     if quiet:

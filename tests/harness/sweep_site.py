@@ -18,6 +18,8 @@ import os
 from concurrent.futures import Future
 from pathlib import Path
 
+import pytest
+
 REPO = Path(__file__).resolve().parents[2]
 
 MODULE = '''
@@ -118,3 +120,47 @@ class InlinePool:
 
     def close(self, cancel: bool) -> None:
         pass
+
+
+# ---- fixtures and checks shared by the sweep tests (import the fixtures into the test module) ----
+
+@pytest.fixture(scope="module")
+def plugin_paths(tmp_path_factory) -> list[str]:
+    return install(tmp_path_factory.mktemp("sweep-plugins"))
+
+
+@pytest.fixture
+def plugins(plugin_paths, monkeypatch) -> list[str]:
+    activate(plugin_paths, monkeypatch)
+    return plugin_paths
+
+
+#: seeds 2, 3, 4 of `sweep-steps` with --max-trials 2: solved after 4 s, solved after 8 s, unsolved at 8 s
+EXPECTED_STEPS = {2: (True, 4.0), 3: (True, 8.0), 4: (False, None)}
+
+
+def children_by_cell(uri: str, result) -> dict[tuple[str, int], list]:
+    """The sweep's child runs by (learner, seed)."""
+    from harness.sweep import child_runs
+    from harness.tracking import open_client
+
+    client = open_client(uri)
+    out: dict[tuple[str, int], list] = {}
+    for run in child_runs(client, result.experiment_id, result.parent_run_id):
+        out.setdefault((run.data.tags["learner"], int(run.data.tags["seed"])), []).append(run)
+    return out
+
+
+def check_steps_cells(uri: str, result) -> None:
+    """The `sweep-steps` cells of seeds 2-4 ended as EXPECTED_STEPS says, with the sweep's tags."""
+    runs = children_by_cell(uri, result)
+    for seed, (solved, time_to_success) in EXPECTED_STEPS.items():
+        (run,) = [r for r in runs[("sweep-steps", seed)] if r.info.status == "FINISHED"]
+        assert run.data.tags["solved"] == str(solved).lower()
+        assert run.data.tags["harness.sweep_id"] == result.sweep_id and run.data.tags["harness.role"] == "cell"
+        assert run.data.params["spec.state_dim"] == "1" and run.data.params["max_trials"] == "2"
+        if solved:
+            assert run.data.metrics["interaction_time_to_success"] == time_to_success
+        else:
+            assert "interaction_time_to_success" not in run.data.metrics
+            assert run.data.metrics["interaction_seconds_total"] == 8.0

@@ -1,53 +1,15 @@
-"""`harness sweep`: cross product, local and Ray executors, resuming, failure isolation, validation."""
+"""`harness sweep`: the spec, validation, resuming and the progress view (in-process pool)."""
 
 from __future__ import annotations
 
 import pytest
-from click.testing import CliRunner
 
 from harness import sweep
-from harness.cli import main
 from harness.errors import HarnessError, OptionError
-from harness.sweep import SWEEP_EXPERIMENT, SweepSpec, child_runs, format_seeds, parse_seeds, run_sweep
+from harness.sweep import SweepSpec, format_seeds, parse_seeds, run_sweep
 from harness.tracking import open_client
 from tests.harness import sweep_site
-
-# seeds 2, 3, 4 of `sweep-steps` with --max-trials 2: solved after 4 s, solved after 8 s, unsolved at 8 s
-EXPECTED_STEPS = {2: (True, 4.0), 3: (True, 8.0), 4: (False, None)}
-
-
-@pytest.fixture(scope="module")
-def plugin_paths(tmp_path_factory) -> list[str]:
-    return sweep_site.install(tmp_path_factory.mktemp("sweep-plugins"))
-
-
-@pytest.fixture
-def plugins(plugin_paths, monkeypatch) -> list[str]:
-    sweep_site.activate(plugin_paths, monkeypatch)
-    return plugin_paths
-
-
-def children_by_cell(uri: str, result) -> dict[tuple[str, int], list]:
-    client = open_client(uri)
-    out: dict[tuple[str, int], list] = {}
-    for run in child_runs(client, result.experiment_id, result.parent_run_id):
-        out.setdefault((run.data.tags["learner"], int(run.data.tags["seed"])), []).append(run)
-    return out
-
-
-def check_steps_cells(uri: str, result) -> None:
-    runs = children_by_cell(uri, result)
-    for seed, (solved, time_to_success) in EXPECTED_STEPS.items():
-        (run,) = [r for r in runs[("sweep-steps", seed)] if r.info.status == "FINISHED"]
-        assert run.data.tags["solved"] == str(solved).lower()
-        assert run.data.tags["harness.sweep_id"] == result.sweep_id and run.data.tags["harness.role"] == "cell"
-        assert run.data.params["spec.state_dim"] == "1" and run.data.params["max_trials"] == "2"
-        if solved:
-            assert run.data.metrics["interaction_time_to_success"] == time_to_success
-        else:
-            assert "interaction_time_to_success" not in run.data.metrics
-            assert run.data.metrics["interaction_seconds_total"] == 8.0
-
+from tests.harness.sweep_site import children_by_cell, plugin_paths, plugins  # noqa: F401 (fixtures)
 
 # ---- spec ---------------------------------------------------------------------------------------
 
@@ -97,49 +59,7 @@ def test_missing_ray_is_one_line_with_the_pip_hint(monkeypatch):
         sweep.check_executor("ray")
 
 
-# ---- local executor -------------------------------------------------------------------------------
-
-
-def test_local_sweep_isolates_failures_and_resumes(plugins, mlflow_uri):
-    spec = SweepSpec(("sweep-steps", "sweep-boom"), ("sweep-toy",), (2, 3, 4), max_trials=2, eval_episodes=2)
-    result = run_sweep(spec, mlflow_uri, executor="local", workers=2)
-
-    assert {(o.cell.learner, o.cell.seed): o.status for o in result.outcomes} == {
-        **{("sweep-steps", s): "finished" for s in (2, 3, 4)}, **{("sweep-boom", s): "failed" for s in (2, 3, 4)}}
-    assert all(o.error == "RuntimeError: boom in the learner" for o in result.failed)
-    check_steps_cells(mlflow_uri, result)
-    runs = children_by_cell(mlflow_uri, result)
-    for seed in (2, 3, 4):
-        (boom,) = runs[("sweep-boom", seed)]
-        assert boom.info.status == "FAILED" and boom.data.tags["harness.error"] == "RuntimeError: boom in the learner"
-    client = open_client(mlflow_uri)
-    parent = client.get_run(result.parent_run_id)
-    assert parent.info.status == "FAILED" and parent.data.tags["harness.cells_failed"] == "3"
-    assert parent.info.experiment_id == client.get_experiment_by_name(SWEEP_EXPERIMENT).experiment_id
-    assert parent.data.params["command"] == spec.command()
-
-    # the same command again, through the CLI: finished cells are skipped, failed ones run again
-    cli = CliRunner().invoke(main, [
-        "sweep", "--learners", "sweep-boom,sweep-steps", "--tasks", "sweep-toy", "--seeds", "2-4", "--max-trials", "2",
-        "--eval-episodes", "2", "--workers", "2", "--tracking-uri", mlflow_uri, "--quiet"])
-    assert cli.exit_code == 1, cli.output
-    assert f"sweep {result.sweep_id}: 0 finished, 3 skipped (finished before), 3 failed" in cli.stdout
-    assert "sweep-boom-sweep-toy-s3: FAILED (RuntimeError: boom in the learner)" in cli.stdout
-    assert "error: 3 cell(s) failed (see above); re-run the same command" in cli.stderr and "Traceback" not in cli.output
-    runs = children_by_cell(mlflow_uri, result)
-    assert [len(runs[("sweep-steps", s)]) for s in (2, 3, 4)] == [1, 1, 1]  # not re-run
-    assert [len(runs[("sweep-boom", s)]) for s in (2, 3, 4)] == [2, 2, 2]  # re-run once each
-
-
-def test_a_dying_worker_process_is_reported_and_replaced(plugins, mlflow_uri):
-    spec = SweepSpec(("sweep-crash", "sweep-steps"), ("sweep-toy",), (2,), max_trials=3, eval_episodes=1)
-    result = run_sweep(spec, mlflow_uri, executor="local", workers=1)
-    outcome = {o.cell.learner: o for o in result.outcomes}
-    assert outcome["sweep-crash"].status == "failed" and "worker process died (BrokenProcessPool" in outcome["sweep-crash"].error
-    assert outcome["sweep-steps"].status == "finished" and outcome["sweep-steps"].solved  # ran in a fresh pool
-    crashed = open_client(mlflow_uri).get_run(outcome["sweep-crash"].run_id)  # the run the dead worker had started
-    assert crashed.info.status == "KILLED" and crashed.data.tags["harness.error"].startswith("worker process died")
-    assert crashed.data.metrics["interaction_seconds"] == 4.0  # its first hand-over was logged before the crash
+# ---- in-process pool: the driver's logic -----------------------------------------------------
 
 
 def test_interrupted_child_continues_from_its_checkpoint(plugins, mlflow_uri, monkeypatch):
@@ -187,17 +107,3 @@ def test_progress_view_reports_every_cell_and_the_totals(plugins, mlflow_uri, mo
     run_sweep(spec, mlflow_uri, progress=Recording(console))
     assert "1 of 2 cells already finished in an earlier invocation: skipped" in console.export_text()
     assert sweep.format_duration(3725) == "1:02:05" and sweep.format_duration(65) == "1:05" and sweep.format_duration(None) == "–"
-
-
-# ---- Ray executor -------------------------------------------------------------------------------
-
-
-def test_ray_sweep_gives_the_same_results(plugins, mlflow_uri):
-    pytest.importorskip("ray")
-    spec = SweepSpec(("sweep-steps", "random"), ("sweep-toy",), (2, 3, 4), max_trials=2, eval_episodes=2)
-    result = run_sweep(spec, mlflow_uri, executor="ray", workers=2)
-    assert [o.status for o in result.outcomes] == ["finished"] * 6
-    check_steps_cells(mlflow_uri, result)
-    assert not any(o.solved for o in result.outcomes if o.cell.learner == "random")
-    again = run_sweep(spec, mlflow_uri, executor="ray", workers=2)  # resumes: nothing left to run, Ray not started
-    assert [o.status for o in again.outcomes] == ["skipped"] * 6 and again.parent_run_id == result.parent_run_id

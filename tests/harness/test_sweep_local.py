@@ -1,0 +1,52 @@
+"""`harness sweep --executor local`: a real process pool; failures isolated, resuming, a dying worker."""
+
+from __future__ import annotations
+
+from click.testing import CliRunner
+
+from harness.cli import main
+from harness.sweep import SWEEP_EXPERIMENT, SweepSpec, run_sweep
+from harness.tracking import open_client
+from tests.harness.sweep_site import check_steps_cells, children_by_cell, plugin_paths, plugins  # noqa: F401 (fixtures)
+
+
+def test_local_sweep_isolates_failures_and_resumes(plugins, mlflow_uri):
+    spec = SweepSpec(("sweep-steps", "sweep-boom"), ("sweep-toy",), (2, 3, 4), max_trials=2, eval_episodes=2)
+    result = run_sweep(spec, mlflow_uri, executor="local", workers=2)
+
+    assert {(o.cell.learner, o.cell.seed): o.status for o in result.outcomes} == {
+        **{("sweep-steps", s): "finished" for s in (2, 3, 4)}, **{("sweep-boom", s): "failed" for s in (2, 3, 4)}}
+    assert all(o.error == "RuntimeError: boom in the learner" for o in result.failed)
+    check_steps_cells(mlflow_uri, result)
+    runs = children_by_cell(mlflow_uri, result)
+    for seed in (2, 3, 4):
+        (boom,) = runs[("sweep-boom", seed)]
+        assert boom.info.status == "FAILED" and boom.data.tags["harness.error"] == "RuntimeError: boom in the learner"
+    client = open_client(mlflow_uri)
+    parent = client.get_run(result.parent_run_id)
+    assert parent.info.status == "FAILED" and parent.data.tags["harness.cells_failed"] == "3"
+    assert parent.info.experiment_id == client.get_experiment_by_name(SWEEP_EXPERIMENT).experiment_id
+    assert parent.data.params["command"] == spec.command()
+
+    # the same command again, through the CLI: finished cells are skipped, failed ones run again
+    cli = CliRunner().invoke(main, [
+        "sweep", "--learners", "sweep-boom,sweep-steps", "--tasks", "sweep-toy", "--seeds", "2-4", "--max-trials", "2",
+        "--eval-episodes", "2", "--workers", "2", "--tracking-uri", mlflow_uri, "--quiet"])
+    assert cli.exit_code == 1, cli.output
+    assert f"sweep {result.sweep_id}: 0 finished, 3 skipped (finished before), 3 failed" in cli.stdout
+    assert "sweep-boom-sweep-toy-s3: FAILED (RuntimeError: boom in the learner)" in cli.stdout
+    assert "error: 3 cell(s) failed (see above); re-run the same command" in cli.stderr and "Traceback" not in cli.output
+    runs = children_by_cell(mlflow_uri, result)
+    assert [len(runs[("sweep-steps", s)]) for s in (2, 3, 4)] == [1, 1, 1]  # not re-run
+    assert [len(runs[("sweep-boom", s)]) for s in (2, 3, 4)] == [2, 2, 2]  # re-run once each
+
+
+def test_a_dying_worker_process_is_reported_and_replaced(plugins, mlflow_uri):
+    spec = SweepSpec(("sweep-crash", "sweep-steps"), ("sweep-toy",), (2,), max_trials=3, eval_episodes=1)
+    result = run_sweep(spec, mlflow_uri, executor="local", workers=1)
+    outcome = {o.cell.learner: o for o in result.outcomes}
+    assert outcome["sweep-crash"].status == "failed" and "worker process died (BrokenProcessPool" in outcome["sweep-crash"].error
+    assert outcome["sweep-steps"].status == "finished" and outcome["sweep-steps"].solved  # ran in a fresh pool
+    crashed = open_client(mlflow_uri).get_run(outcome["sweep-crash"].run_id)  # the run the dead worker had started
+    assert crashed.info.status == "KILLED" and crashed.data.tags["harness.error"].startswith("worker process died")
+    assert crashed.data.metrics["interaction_seconds"] == 4.0  # its first hand-over was logged before the crash
