@@ -35,7 +35,8 @@ class RBFController(nn.Module):
 
     ``z_a(x) = sum_i beta_ai exp(-1/2 (x - c_i)^T Lambda_a^-1 (x - c_i))`` with
     ``beta_a = (K_a + 0.01^2 I)^-1 t_a``, ``K_a`` the SE-ARD Gram matrix of the centres with signal
-    variance fixed to 1. Output moments are the GP-mean moments (``mean_only``, reference ``gp2``).
+    variance fixed to 1. Output moments are the GP-mean moments (``mean_only``, reference ``gp2``;
+    gp2's extra 1e-6 on the output variance is not added: the moments here are exact).
 
     Parameters (theta): ``centres (n_c, p)``, ``targets (n_c, F)``, ``log_ell (F, p)``;
     count ``n_c p + n_c F + F p`` (305 for 50 centres, 5 inputs, 1 control: the paper's R^305).

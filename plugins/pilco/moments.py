@@ -34,6 +34,12 @@ Implementation notes (all float64, vectorised over outputs and basis points):
   ``(n, n, E, E, d)`` tensor is ever formed.
 * Only the ``E (E + 1) / 2`` output pairs ``a <= b`` are computed (``Q_ba = Q_ab^T``), the ``E``
   diagonal pairs first so that ``Q_aa`` is a view for the trace term.
+* The backward pass is hand-derived (:meth:`MomentMatchingGP._backward`; only ``Q`` and thin
+  ``(pairs, n, d)`` intermediates are kept) and tested equal to autograd through the same forward
+  to 1e-11. Policy evaluation is dominated by the number of small operator calls, and autograd
+  needs about three times as many.
+* The ``(pairs, n, n)`` buffers are reused across rollouts (:class:`_Workspace`): touching fresh
+  memory costs about as much as the arithmetic on it.
 """
 
 from __future__ import annotations
