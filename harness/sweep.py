@@ -28,7 +28,10 @@ their own runs.
 **Workers.** Every cell runs in a fresh, single-threaded process (local:
 ``ProcessPoolExecutor`` with the spawn start method and ``max_tasks_per_child=1``; Ray:
 ``max_calls=1``), so its result never depends on what ran before it in the same worker (global
-RNGs, torch state) and a crashed cell takes no other down with it. The driver keeps at most
+RNGs, torch state). A learner that raises fails its own cell only. A worker *process* that dies
+(crash, out of memory) is replaced; in the local pool, ``ProcessPoolExecutor`` also stops the
+cells running beside it at that moment: all of them are reported failed, their runs marked
+KILLED, and the next invocation continues them from their checkpoints. The driver keeps at most
 ``workers`` cells in flight; that bounded feeding is the only scheduling done here.
 """
 
@@ -314,16 +317,17 @@ def _single_thread() -> None:
 def run_cell(job: CellJob) -> CellOutcome:
     """Run one cell as a child of the sweep's parent run; never raises for a failing learner."""
     _single_thread()
+    from harness.errors import CheckpointError
     from harness.progress import SilentProgress
     from harness.runner import RunConfig, run
     from harness.tracking import MlflowTracker
 
     class CellTracker(MlflowTracker):
+        """Adds the sweep's tags and the task sizes to the child run the runner starts."""
+
         def start(self, experiment, run_name, params, tags):
             return super().start(experiment, run_name, {**params, **job.extra_params},
                                  {**tags, SWEEP_TAG: job.sweep_id, ROLE_TAG: "cell"})
-
-    from harness.errors import CheckpointError
 
     cell = job.cell
     config = RunConfig(cell.learner, cell.task, cell.seed, dict(job.learner_options), dict(job.task_options),
