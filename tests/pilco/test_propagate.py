@@ -20,8 +20,8 @@ NUM_SAMPLES = 100_000
 SIGMAS = 5.0
 
 
-def _mc_step(m, S, post, ctrl, layout, gen):
-    x = m + torch.randn(NUM_SAMPLES, m.shape[0], generator=gen, dtype=DT) @ torch.linalg.cholesky(S).T
+def _mc_step(m, S, post, ctrl, layout, gen, num_samples=NUM_SAMPLES):
+    x = m + torch.randn(num_samples, m.shape[0], generator=gen, dtype=DT) @ torch.linalg.cholesky(S).T
     with torch.no_grad():
         a = layout.augment(x)
         u = ctrl(a[:, layout.policy_index])
@@ -53,14 +53,15 @@ def test_layout_with_trig_cartpole() -> None:
 
 
 def test_exact_case_matches_monte_carlo() -> None:
-    """No angles, unsquashed linear policy: the joint (x, u) is Gaussian, so the step is exact."""
+    """No angles, unsquashed linear policy: the joint (x, u) is Gaussian, so the step is exact.
+    (4e5 samples: a 10 % error in cov[x, u] is then about 10 standard errors.)"""
     gen = torch.Generator().manual_seed(1)
     post = random_posterior(3, 25, 4, gen)
     layout = StateLayout(3, (), (0, 1, 2), (0, 2))
     ctrl = LinearController(torch.tensor([[0.5, -0.7]], dtype=DT), torch.tensor([0.2], dtype=DT))
     m, S = random_gaussian(3, gen, scale=0.6)
     m1, S1 = propagate_step(m, S, MomentMatchingGP(post), ctrl.moment_map(), layout)
-    x1 = _mc_step(m, S, post, ctrl, layout, gen)
+    x1 = _mc_step(m, S, post, ctrl, layout, gen, num_samples=400_000)
     mean, mean_se, cov, cov_se, _, _ = mc_moments(x1, x1)
     assert torch.all((m1 - mean).abs() <= SIGMAS * mean_se)
     assert torch.all((S1 - cov).abs() <= SIGMAS * cov_se)
