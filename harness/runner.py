@@ -163,12 +163,13 @@ def run_identity(prep: Prepared) -> dict[str, Any]:
     return identity
 
 
-def _latest_valid_checkpoint(paths: list[Path]) -> Checkpoint:
-    """The checkpoint of the highest trial that loads (a file cut by a crash is skipped)."""
+def _latest_valid_checkpoint(tracker: Tracker, destination: Path) -> Checkpoint:
+    """The checkpoint of the highest trial that loads (a file cut by a crash is skipped); only
+    the files needed are downloaded, newest first."""
     errors = []
-    for path in sorted(paths, reverse=True):
+    for name in sorted(tracker.list_artifacts("checkpoints"), reverse=True):
         try:
-            return load_checkpoint(path)
+            return load_checkpoint(tracker.fetch_artifact(name, destination))
         except CheckpointError as exc:
             errors.append(str(exc))
     detail = f" ({errors[0]})" if errors else ""
@@ -208,7 +209,7 @@ def run(
         if not prep.learner_cls.supports_resume:
             raise CheckpointError(f"learner '{config.learner}' cannot resume runs; start a new run without --resume")
         tracker.resume(resume_run_id)
-        checkpoint = _latest_valid_checkpoint(tracker.fetch_artifacts("checkpoints", workdir / "resume"))
+        checkpoint = _latest_valid_checkpoint(tracker, workdir / "resume")
         mismatch = identity_mismatch(checkpoint.identity, identity)
         if mismatch:
             tracker.finish("FAILED")

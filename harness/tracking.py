@@ -51,7 +51,9 @@ class Tracker(Protocol):
 
     def resume(self, run_id: str) -> None: ...
 
-    def fetch_artifacts(self, artifact_path: str, destination: Path) -> list[Path]: ...
+    def list_artifacts(self, artifact_path: str) -> list[str]: ...
+
+    def fetch_artifact(self, name: str, destination: Path) -> Path: ...
 
 
 def _finite(metrics: Mapping[str, float]) -> dict[str, float]:
@@ -113,12 +115,15 @@ class MemoryTracker:
             raise TrackingError(f"no run {run_id!r} in this in-memory tracker")
         self.status = "RUNNING"
 
-    def fetch_artifacts(self, artifact_path: str, destination: Path) -> list[Path]:
+    def list_artifacts(self, artifact_path: str) -> list[str]:
+        source = self.root / artifact_path
+        return [f"{artifact_path}/{f.name}" for f in sorted(source.glob("*"))] if source.exists() else []
+
+    def fetch_artifact(self, name: str, destination: Path) -> Path:
         import shutil
 
-        source = self.root / artifact_path
         destination.mkdir(parents=True, exist_ok=True)
-        return [Path(shutil.copy2(f, destination / f.name)) for f in sorted(source.glob("*"))] if source.exists() else []
+        return Path(shutil.copy2(self.root / name, destination / Path(name).name))
 
 
 class MlflowTracker:
@@ -201,11 +206,14 @@ class MlflowTracker:
         self.run_id = run_id
         self.client.update_run(run_id, status="RUNNING")
 
-    def fetch_artifacts(self, artifact_path: str, destination: Path) -> list[Path]:
-        """Download the run's artifacts under ``artifact_path`` into ``destination``."""
+    def list_artifacts(self, artifact_path: str) -> list[str]:
+        """Names of the run's artifacts under ``artifact_path``."""
+        return sorted(a.path for a in self.client.list_artifacts(self.run_id, artifact_path))
+
+    def fetch_artifact(self, name: str, destination: Path) -> Path:
+        """Download one artifact of the run into ``destination``."""
         destination.mkdir(parents=True, exist_ok=True)
-        names = [a.path for a in self.client.list_artifacts(self.run_id, artifact_path)]
-        return [Path(self.client.download_artifacts(self.run_id, name, str(destination))) for name in names]
+        return Path(self.client.download_artifacts(self.run_id, name, str(destination)))
 
     def find_resumable(self, experiment: str, learner: str, seed: int) -> str | None:
         """The newest unfinished (RUNNING, FAILED or KILLED) run of ``learner`` with ``seed``."""
