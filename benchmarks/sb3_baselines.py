@@ -91,7 +91,8 @@ def summarise(task: str) -> Path:
              "process at a time on the shared 2-core machine, torch threads 1). Success: the harness's",
              "evaluation (10 episodes on a separate, uncounted environment, >= 90 % successful) after a hand-over;",
              "interaction time = counted steps x dt before that hand-over. Unsolved runs are reported with the",
-             "budget as a lower bound, never as a number. Tracking store: `results/runs/mlflow.db`.", ""]
+             "budget as a lower bound, never as a number. Wall = wall-clock seconds of the whole command",
+             "(imports and evaluations included). Tracking store: `results/runs/mlflow.db`.", ""]
     for learner in sorted({r["learner"] for r in rows}):
         sub = [r for r in rows if r["learner"] == learner]
         solved = sum(r["solved"] == "True" for r in sub)

@@ -177,6 +177,8 @@ def test_evaluation_steps_are_not_counted(sb3_plugins, learner, options, chunk):
         # the learner's own step counter agrees with the harness's seconds
         assert [h["sb3_num_timesteps"] * dt for h in run.history] == pytest.approx([chunk * dt, 2 * chunk * dt])
         assert all(h["sb3_steps_per_second"] > 0 for h in run.history)
+        # mean summed cost of SB3's recent training episodes: 40 steps of a cost in [0, 1)
+        assert all(0 < h["sb3_train_episode_cost"] < 40 for h in run.history)
 
 
 @pytest.mark.parametrize("learner, options", [("sac", SAC_SMALL), ("ppo", PPO_SMALL)])
