@@ -73,7 +73,8 @@ def append(row: dict, path: Path) -> None:
 
 def _median_text(rows: list[dict]) -> str:
     """Median interaction time to success; unsolved runs sort last as '> budget'."""
-    keyed = sorted((float(r["interaction_time_to_success"]) if r["solved"] == "True" else math.inf, r) for r in rows)
+    keyed = sorted(((float(r["interaction_time_to_success"]) if r["solved"] == "True" else math.inf, r) for r in rows),
+                   key=lambda pair: pair[0])
     n = len(keyed)
     if n == 0:
         return "-"
@@ -104,6 +105,9 @@ def summarise(task: str) -> Path:
             lines.append(f"| {r['seed']} | {r['solved']} | {t} | {r['interaction_episodes']} | {r['trials']} | "
                          f"{r['interaction_seconds']} | {float(r['budget_seconds']):g} | {r['wall_seconds']} | {r['stop_reason']} |")
         lines += ["", "Commands:", "", "```"] + [r["command"] for r in sub] + ["```", ""]
+    notes = OUT / f"sb3_{task}_notes.md"  # hand-written reading of the runs, kept across regenerations
+    if notes.exists():
+        lines += ["## Notes", "", notes.read_text().strip(), ""]
     md = OUT / f"sb3_{task}.md"
     md.write_text("\n".join(lines))
     return md
