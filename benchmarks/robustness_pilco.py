@@ -29,10 +29,13 @@ def main() -> None:
     parser.add_argument("--trials", type=int, default=4)
     parser.add_argument("--task", default="cartpole")
     parser.add_argument("--learner", default="pilco")
-    parser.add_argument("--set", dest="assignments", action="append", default=["policy_max_evaluations=40", "num_centres=20"])
+    parser.add_argument("--set", dest="assignments", action="append", default=None,
+                        help="learner option key=value (repeatable); default: policy_max_evaluations=40 num_centres=20")
     parser.add_argument("--out", type=Path, default=None)
     args = parser.parse_args()
     torch.set_num_threads(1)
+    if args.assignments is None:
+        args.assignments = ["policy_max_evaluations=40", "num_centres=20"]
     options = dict(a.split("=", 1) for a in args.assignments)
 
     crashes: list[tuple[int, str]] = []
@@ -57,7 +60,7 @@ def main() -> None:
         f"# {args.learner} numerical robustness on {args.task}: {len(crashes)} of {args.seeds} seeds crashed",
         "",
         f"Command: `python benchmarks/robustness_pilco.py --seeds {args.seeds} --trials {args.trials} "
-        + " ".join(f"--set {a}" for a in args.assignments) + "`  ",
+        + " ".join(f"--set {a}" for a in args.assignments) + (f" --out {args.out}" if args.out else "") + "`  ",
         f"Machine: {platform.machine()}, torch {torch.__version__}, 1 thread; wall {time.time() - start:.0f} s.",
         "",
         "| seeds | trials run | runs that crashed | policy searches that fell back to the previous policy | line-search back-offs (non-finite J) | solved within the budget |",
