@@ -21,9 +21,9 @@ from dataclasses import dataclass
 import numpy as np
 
 from harness.options import Option
-from harness.task import Episode, SaturatingCost, Task, TaskSpec
+from harness.task import Episode, SaturatingCost, TaskSpec
 from tasks.drawing import Canvas
-from tasks.simulation import OdeEnv, RightHandSide
+from tasks.simulation import OdeEnv, OdeTask, RightHandSide
 
 
 
@@ -84,7 +84,7 @@ def pole_tip(states: np.ndarray, pole_length: float) -> np.ndarray:
     return np.stack([states[..., 0] + pole_length * np.sin(th), -pole_length * np.cos(th)], axis=-1)
 
 
-class CartPole(Task):
+class CartPole(OdeTask):
     """Cart-pole swing-up (PILCO V0.9 defaults: l = 0.5 m, dt = 0.1 s, 40 steps, |f| <= 10 N).
 
     Start ``N(0, 0.1^2 I)`` (hanging down); observations carry ``N(0, 0.01^2)`` noise; cost
@@ -140,20 +140,6 @@ class CartPole(Task):
             cost=cost,
             measurement_noise_std=np.full(4, self.options["measurement_noise"]),
             options=dict(self.options),
-        )
-
-    @property
-    def spec(self) -> TaskSpec:
-        return self._spec
-
-    def make_env(self, render_mode: str | None = None, measurement_noise: bool = True) -> OdeEnv:
-        return OdeEnv(
-            self._spec,
-            self.rhs,
-            substeps=self.options["substeps"],
-            draw=self.draw,
-            render_mode=render_mode,
-            measurement_noise=measurement_noise,
         )
 
     def tip_distance(self, states: np.ndarray) -> np.ndarray:

@@ -31,9 +31,9 @@ from dataclasses import dataclass
 import numpy as np
 
 from harness.options import Option
-from harness.task import Episode, SaturatingCost, Task, TaskSpec
+from harness.task import Episode, SaturatingCost, TaskSpec
 from tasks.drawing import Canvas
-from tasks.simulation import OdeEnv, RightHandSide
+from tasks.simulation import OdeEnv, OdeTask, RightHandSide
 
 
 @dataclass(frozen=True)
@@ -111,7 +111,7 @@ def link_tip(states: np.ndarray, l2: float, l3: float) -> np.ndarray:
     )
 
 
-class CartDoublePendulum(Task):
+class CartDoublePendulum(OdeTask):
     """Cart-double-pendulum swing-up (reference: dt = 0.05 s, 100 steps = 5 s, |f| <= 20 N).
 
     Start ``N([0 0 0 0 pi pi], diag([0.1 0.1 0.1 0.1 0.01 0.01]^2))`` (both links hanging down);
@@ -173,20 +173,6 @@ class CartDoublePendulum(Task):
             cost=cost,
             measurement_noise_std=np.full(6, self.options["measurement_noise"]),
             options=dict(self.options),
-        )
-
-    @property
-    def spec(self) -> TaskSpec:
-        return self._spec
-
-    def make_env(self, render_mode: str | None = None, measurement_noise: bool = True) -> OdeEnv:
-        return OdeEnv(
-            self._spec,
-            self.rhs,
-            substeps=self.options["substeps"],
-            draw=self.draw,
-            render_mode=render_mode,
-            measurement_noise=measurement_noise,
         )
 
     def tip_distance(self, states: np.ndarray) -> np.ndarray:

@@ -54,7 +54,7 @@ import gymnasium as gym
 import numpy as np
 
 from harness.errors import InteractionError, NumericalError
-from harness.task import TaskSpec, check_action
+from harness.task import Task, TaskSpec, check_action
 
 #: ``f(z, u) -> dz/dt``: state and control as float sequences, derivative as a tuple of floats.
 RightHandSide = Callable[[Sequence[float], Sequence[float]], Sequence[float]]
@@ -247,3 +247,26 @@ def _cholesky_psd(cov: np.ndarray) -> np.ndarray:
     if np.min(w) < -1e-12 * max(1.0, float(np.max(np.abs(w)))):
         raise ValueError("init_cov is not positive semi-definite")
     return v * np.sqrt(np.clip(w, 0.0, None))
+
+
+class OdeTask(Task):
+    """Base of the simulated tasks: subclasses set ``self._spec`` and ``self.rhs`` in ``__init__``,
+    declare a ``substeps`` option and a ``draw(state) -> RGB`` method; environments are
+    :class:`OdeEnv` instances integrating ``rhs`` with the shared RK4."""
+
+    _spec: TaskSpec
+    rhs: RightHandSide
+
+    @property
+    def spec(self) -> TaskSpec:
+        return self._spec
+
+    def make_env(self, render_mode: str | None = None, measurement_noise: bool = True) -> OdeEnv:
+        return OdeEnv(
+            self._spec,
+            self.rhs,
+            substeps=self.options["substeps"],
+            draw=self.draw,
+            render_mode=render_mode,
+            measurement_noise=measurement_noise,
+        )
