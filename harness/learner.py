@@ -78,6 +78,8 @@ class Learner(ABC):
         self.metrics: dict[str, float] = {}
         #: files (paths) the learner wants attached to the run after each hand-over.
         self.artifacts: list[Path] = []
+        #: the state to continue from, set by :meth:`load_state_dict` before :meth:`learn`.
+        self._resume_state: dict[str, Any] | None = None
 
     @classmethod
     def option_set(cls) -> OptionSet:

@@ -42,9 +42,8 @@ class RandomLearner(Learner):
     def learn(self, interaction: Interaction) -> Iterator[Policy]:
         scale = self.options["scale"]
         self._policy = UniformRandomPolicy(scale * self.spec.action_low, scale * self.spec.action_high, self.seed)
-        resumed = getattr(self, "_resume_state", None)
-        if resumed is not None:
-            self._policy.rng.bit_generator.state = resumed["rng"]
+        if self._resume_state is not None:
+            self._policy.rng.bit_generator.state = self._resume_state["rng"]
         while True:
             interaction.rollout(self._policy)
             yield self._policy

@@ -173,6 +173,7 @@ class Pilco(Learner):
         self.layout = layout_for(spec, self.preset)
         self.horizon = o["planning_horizon"] or spec.horizon
         self.num_pseudo = o["num_pseudo"] or self.preset.sparse_threshold
+        self._state: dict[str, Any] = {}  # see state_dict(); filled at every hand-over
 
     @classmethod
     def default_limits(cls, spec: TaskSpec) -> tuple[int | None, float | None]:
@@ -221,7 +222,7 @@ class Pilco(Learner):
         workdir = Path(tempfile.mkdtemp(prefix="pilco-"))
         model = GPModel(sparse_threshold=self.preset.sparse_threshold, num_pseudo=self.num_pseudo, max_evals_full=o["gp_max_evals"])
         controller = self._new_controller(torch.Generator().manual_seed(self.seed))
-        resumed = getattr(self, "_resume_state", None)
+        resumed = self._resume_state
         try:
             if resumed is None:
                 scale = self.preset.random_scale
