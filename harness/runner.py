@@ -132,6 +132,8 @@ def run_params(prep: Prepared) -> dict[str, Any]:
         "eval_episodes": cfg.eval_episodes,
         "git_sha": git_sha(),
     }
+    spec = prep.task.spec
+    params.update({"spec.state_dim": spec.state_dim, "spec.action_dim": spec.action_dim, "spec.dt": spec.dt, "spec.horizon": spec.horizon})
     params.update({f"task.{k}": v for k, v in prep.task.options.items()})
     params.update({f"learner.{k}": v for k, v in prep.learner_options.items()})
     params.update({f"version.{k}": v for k, v in package_versions().items()})

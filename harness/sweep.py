@@ -252,7 +252,7 @@ def validate(spec: SweepSpec) -> dict[tuple[str, str], dict[str, Any]]:
     """Load every plugin, route and check every option for every (learner, task) pair.
 
     Returns, per pair, ``learner_options``, ``task_options`` (raw strings, as the runner takes
-    them) and ``extra_params`` (task sizes for the report). Raises a one-line
+    them) and ``extra_params`` (the sweep command, logged with every child run). Raises a one-line
     :class:`~harness.errors.HarnessError` on the first problem.
     """
     from harness.discovery import load_learner, load_task
@@ -269,20 +269,13 @@ def validate(spec: SweepSpec) -> dict[tuple[str, str], dict[str, Any]]:
             pairs = spec.assignments_for(learner, task)
             try:
                 to_learner, to_task = split_assignments(pairs, learner_cls.option_set(), task_cls.option_set())
-                prep = prepare(RunConfig(learner, task, 0, to_learner, to_task, spec.max_trials, spec.budget_seconds, spec.eval_episodes))
+                prepare(RunConfig(learner, task, 0, to_learner, to_task, spec.max_trials, spec.budget_seconds, spec.eval_episodes))
             except OptionError as exc:
                 raise OptionError(f"{exc} (in the sweep cell {learner} on {task}; scope a --set to one learner or task with NAME:key=value)") from None
-            task_spec = prep.task.spec
             setups[(learner, task)] = {
                 "learner_options": to_learner,
                 "task_options": to_task,
-                "extra_params": {
-                    "spec.state_dim": task_spec.state_dim,
-                    "spec.action_dim": task_spec.action_dim,
-                    "spec.dt": task_spec.dt,
-                    "spec.horizon": task_spec.horizon,
-                    "sweep.command": spec.command(),
-                },
+                "extra_params": {"sweep.command": spec.command()},  # task sizes: every run logs them (runner.run_params)
             }
     return setups
 

@@ -138,3 +138,15 @@ def test_two_bench_processes_on_one_fresh_store(tmp_path):
     mlflow.set_tracking_uri(uri)
     runs = mlflow.search_runs(experiment_names=["cartpole"])
     assert sorted(runs["params.seed"]) == ["0", "1"] and set(runs["status"]) == {"FINISHED"}
+
+
+def test_bench_runs_record_the_task_sizes(tmp_path, mlflow_uri):
+    """Table 1 reads the state dimension from every run, sweep child or plain bench run."""
+    proc = run_cli("bench", "-l", "random", "-t", "cartpole", "--seed", "7", "--max-trials", "1", "--eval-episodes", "1",
+                   "--tracking-uri", mlflow_uri, "-q", cwd=tmp_path)
+    assert proc.returncode == 0, proc.stderr
+    import mlflow
+
+    mlflow.set_tracking_uri(mlflow_uri)
+    row = mlflow.search_runs(experiment_names=["cartpole"], filter_string="params.seed = '7'").iloc[0]
+    assert (row["params.spec.state_dim"], row["params.spec.action_dim"], row["params.spec.dt"], row["params.spec.horizon"]) == ("4", "1", "0.1", "40")
