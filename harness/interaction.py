@@ -53,19 +53,15 @@ def run_episode(
     policy: Callable[[np.ndarray], Any],
     seed: int | None = None,
     max_steps: int | None = None,
-    before_step: Callable[[], None] | None = None,
 ) -> Episode:
-    """Run one episode of ``policy`` on ``env`` and return it (used for interaction and evaluation).
-
-    ``before_step`` is called before every step (the interaction's budget check). The episode
-    ends at termination, truncation (the task horizon) or after ``max_steps`` steps.
+    """Run one uncounted episode of ``policy`` on ``env`` and return it (evaluation, conformance
+    checks; counted episodes go through :meth:`Interaction.rollout`). The episode ends at
+    termination, truncation (the task horizon) or after ``max_steps`` steps.
     """
     obs, info = env.reset(seed=seed)
     buffer = _EpisodeBuffer(np.asarray(obs, dtype=np.float64), _state_of(info, obs))
     limit = spec.horizon if max_steps is None else min(int(max_steps), spec.horizon)
     for _ in range(limit):
-        if before_step is not None:
-            before_step()
         action, _ = check_action(policy(np.asarray(obs, dtype=np.float64)), spec)
         obs, reward, terminated, truncated, info = env.step(action)
         _record(buffer, obs, reward, terminated, info, action)
