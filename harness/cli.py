@@ -132,14 +132,12 @@ def bench_command(
     resume: str | None,
 ) -> None:
     """Run one learner on one task and report its interaction time to success."""
-    from harness.discovery import load_learner, load_task
-    from harness.options import parse_assignments, split_assignments
+    from harness.options import parse_assignments
     from harness.progress import RichProgress, SilentProgress
-    from harness.runner import RunConfig, prepare, run
+    from harness.runner import RunConfig, prepare, route_options, run
     from harness.tracking import MemoryTracker, MlflowTracker
 
-    learner_cls, task_cls = load_learner(learner), load_task(task)
-    to_learner, to_task = split_assignments(parse_assignments(assignments), learner_cls.option_set(), task_cls.option_set())
+    to_learner, to_task = route_options(learner, task, parse_assignments(assignments))
     config = RunConfig(learner, task, seed, to_learner, to_task, max_trials, _parse_budget(budget_seconds), eval_episodes)
     prepare(config)  # validate everything before the store is touched
     if resume is not None and no_tracking:

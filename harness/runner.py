@@ -361,12 +361,16 @@ def _finish(tracker: Tracker, result: RunResult, interaction: Interaction, workd
         tracker.finish(status)  # type: ignore[arg-type]
 
 
-def run_from_names(learner: str, task: str, seed: int = 0, options: Mapping[str, Any] | None = None, **kwargs: Any) -> RunResult:
-    """Library shortcut: ``run_from_names("random", "cartpole", max_trials=3)`` (in-memory tracking)."""
+def route_options(learner: str, task: str, pairs: list[tuple[str, Any]]) -> tuple[dict[str, Any], dict[str, Any]]:
+    """``key=value`` pairs split into the learner's and the task's options (see ``split_assignments``)."""
     from harness.options import split_assignments
 
-    learner_cls, task_cls = load_learner(learner), load_task(task)
-    to_learner, to_task = split_assignments(list((options or {}).items()), learner_cls.option_set(), task_cls.option_set())
+    return split_assignments(pairs, load_learner(learner).option_set(), load_task(task).option_set())
+
+
+def run_from_names(learner: str, task: str, seed: int = 0, options: Mapping[str, Any] | None = None, **kwargs: Any) -> RunResult:
+    """Library shortcut: ``run_from_names("random", "cartpole", max_trials=3)`` (in-memory tracking)."""
+    to_learner, to_task = route_options(learner, task, list((options or {}).items()))
     return run(RunConfig(learner, task, seed, to_learner, to_task, **kwargs))
 
 

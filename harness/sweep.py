@@ -256,19 +256,18 @@ def validate(spec: SweepSpec) -> dict[tuple[str, str], dict[str, Any]]:
     :class:`~harness.errors.HarnessError` on the first problem.
     """
     from harness.discovery import load_learner, load_task
-    from harness.options import split_assignments
-    from harness.runner import RunConfig, prepare
+    from harness.runner import RunConfig, prepare, route_options
 
     if not spec.seeds:
         raise OptionError("--seeds is empty")
     setups: dict[tuple[str, str], dict[str, Any]] = {}
     for task in spec.tasks:
-        task_cls = load_task(task)
+        load_task(task)  # unknown or broken plugins fail here, before any option is looked at
         for learner in spec.learners:
-            learner_cls = load_learner(learner)
+            load_learner(learner)
             pairs = spec.assignments_for(learner, task)
             try:
-                to_learner, to_task = split_assignments(pairs, learner_cls.option_set(), task_cls.option_set())
+                to_learner, to_task = route_options(learner, task, pairs)
                 prepare(RunConfig(learner, task, 0, to_learner, to_task, spec.max_trials, spec.budget_seconds, spec.eval_episodes))
             except OptionError as exc:
                 raise OptionError(f"{exc} (in the sweep cell {learner} on {task}; scope a --set to one learner or task with NAME:key=value)") from None
