@@ -184,6 +184,20 @@ def test_success_predicate():
     assert task.success(noisy)
 
 
+def test_success_rules_consecutive_and_final():
+    """Balanced for 10 steps mid-episode, then fallen: a success under Kamthe & Deisenroth's
+    "ten consecutive time steps", a failure under ``success_rule=final``."""
+    hanging = np.zeros((15, 4))
+    mid = np.vstack([hanging, _upright(0.5, 10), hanging])
+    assert CartPole().success(_episode(mid))
+    assert not CartPole(success_rule="final").success(_episode(mid))
+    gap = mid.copy()
+    gap[20, 3] = 0.0  # one step out splits the run into 5 + 4
+    assert not CartPole().success(_episode(gap))
+    with pytest.raises(OptionError, match="success_rule"):
+        CartPole(success_rule="sometimes")
+
+
 def test_invalid_and_clipped_actions():
     env = CartPole().make_env()
     env.reset(seed=0)

@@ -175,6 +175,10 @@ def test_success_predicate():
     assert task.success(_episode(near))
     # 11 cm with cost_link_length = 1.0 would read differently; success uses the true geometry
     assert CartDoublePendulum(cost_link_length=1.0).success(_episode(near))
+    # up for 10 steps, then down again: consecutive rule yes, final rule no
+    mid = np.vstack([hanging, upright, hanging[:5]])
+    assert CartDoublePendulum().success(_episode(mid))
+    assert not CartDoublePendulum(success_rule="final").success(_episode(mid))
 
 
 def test_invalid_and_clipped_actions():
