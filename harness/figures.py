@@ -198,18 +198,24 @@ def curve_table(curves: dict[str, list[dict[str, np.ndarray]]], points: int = 80
     return rows
 
 
-def plot_curves(rows: Sequence[dict[str, Any]], path: Path, task: str) -> Path:
-    """Two panels (success rate, cost) vs interaction seconds (log), one line + band per learner."""
+def plot_curves(rows: Sequence[dict[str, Any]], path: Path, task: str,
+                per_run: dict[str, list[dict[str, np.ndarray]]] | None = None) -> Path:
+    """Two panels (success rate, cost) vs interaction seconds (log), one line + band per learner;
+    with ``per_run`` (label -> run histories, see :func:`harness.report.history`), every run's
+    hand-overs as a thin line in the learner's colour."""
     plt = _plt()
     fig, axes = plt.subplots(1, 2, figsize=(10, 3.8), dpi=120)
     labels = list(dict.fromkeys(r["learner"] for r in rows))
     for label in labels:
         sub = [r for r in rows if r["learner"] == label]
         x = np.array([r["interaction_s"] for r in sub])
-        for ax, name in zip(axes, ("success", "cost")):
+        for ax, name, key in zip(axes, ("success", "cost"), ("eval_success_rate", "eval_cost")):
             mean = np.array([r[f"{name}_mean"] for r in sub])
             line, = ax.step(x, mean, where="post", label=f"{label} (n={max(r['runs_evaluated'] for r in sub)})")
             ax.fill_between(x, [r[f"{name}_low"] for r in sub], [r[f"{name}_high"] for r in sub], step="post", color=line.get_color(), alpha=0.2)
+            for h in (per_run or {}).get(label, []):
+                if h["interaction_seconds"].size:
+                    ax.step(h["interaction_seconds"], h[key], where="post", color=line.get_color(), lw=0.6, alpha=0.35)
     axes[0].set(ylabel="evaluation success rate", ylim=(-0.03, 1.03))
     axes[1].set(ylabel="evaluation cost (sum over the episode)")
     xs = [r["interaction_s"] for r in rows] or [1.0]
@@ -221,7 +227,7 @@ def plot_curves(rows: Sequence[dict[str, Any]], path: Path, task: str) -> Path:
         axes[0].legend(fontsize=7, loc="upper left")
     else:
         axes[0].text(0.5, 0.5, "no evaluations logged", transform=axes[0].transAxes, ha="center")
-    fig.suptitle(f"{task}: mean over seeds with 95 % bootstrap band (policy in hand held between hand-overs)", fontsize=9)
+    fig.suptitle(f"{task}: mean over seeds with 95 % bootstrap band, thin lines = single runs (policy in hand held between hand-overs)", fontsize=9)
     fig.tight_layout()
     fig.savefig(path)
     plt.close(fig)

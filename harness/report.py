@@ -8,7 +8,13 @@ Reads the sweeps' child runs (see :mod:`harness.sweep` for the layout) and write
   parameters) measured, median [range], beside the paper's values;
 * ``fig5.png`` / ``fig5.csv``: interaction time to learn cart-pole, log axis, one bar per learner
   (and literature rows from ``literature_fig5.csv``, each with its source);
-* ``curves_<task>.png`` / ``.csv``: evaluation success rate and cost vs interaction seconds;
+* ``runs_<task>.md`` / ``.csv``: one row per counted run (seed, solved, time to success or the
+  interaction at which it stopped unsolved, trials, wall time, stop reason, run id);
+* ``curves_<task>.png`` / ``.csv``: evaluation success rate and cost vs interaction seconds
+  (mean with band, and every run as a thin line);
+* ``prediction_<task>_<learner>.png``: for learners that log predicted-vs-realised cost plots
+  (PILCO's ``prediction_trial*.png``), the last one of a representative run: the solved run with
+  the median time to success (lower median), else the run with the most hand-overs;
 * ``sweeps.md``: which sweeps (ids, commands, store) the files were made from.
 
 With ``include_bench``, `harness bench` runs outside sweeps are reported too, grouped by
@@ -302,6 +308,71 @@ def comparison_row(task: str, label: str, runs: Sequence[RunRecord], reps: int =
     }
 
 
+RUNS_FIELDS = ["task", "learner", "seed", "solved", "time_to_success_s", "trials_to_success", "interaction_used_s",
+               "wall_seconds", "stop_reason", "status", "run_id"]
+
+
+def run_rows(task: str, label: str, runs: Sequence[RunRecord]) -> list[dict[str, Any]]:
+    """One row per counted run; an unsolved run has no time to success (``nan``), only the
+    interaction it used before it stopped."""
+    return [{
+        "task": task, "learner": label, "seed": r.seed, "solved": r.solved,
+        "time_to_success_s": r.time_to_success if r.solved and r.time_to_success is not None else math.nan,
+        "trials_to_success": r.trials_to_success if r.solved and r.trials_to_success is not None else math.nan,
+        "interaction_used_s": r.interaction_seconds, "wall_seconds": r.wall_seconds,
+        "stop_reason": r.stop_reason, "status": r.status, "run_id": r.run_id,
+    } for r in runs]
+
+
+def runs_markdown(task: str, rows: Sequence[dict[str, Any]]) -> str:
+    lines = [f"## {task}: every counted run", "",
+             "Time to success = interaction seconds before the first solved evaluation; an unsolved run shows "
+             "'> X' with X the interaction it used before it stopped (a lower bound, not a value). "
+             "Trials = interaction episodes, initial random ones included. Wall = the run's own wall-clock time.", "",
+             "| learner | seed | solved | time to success (s) | trials | interaction used (s) | wall (s) | stop | run |",
+             "|---|---|---|---|---|---|---|---|---|"]
+    for r in rows:
+        time = f"{r['time_to_success_s']:.1f}" if r["solved"] else f"> {r['interaction_used_s']:.1f} (unsolved)"
+        trials = _num(r["trials_to_success"]) if r["solved"] else "–"
+        lines.append(f"| {r['learner']} | {r['seed']} | {'yes' if r['solved'] else 'no'} | {time} | {trials} "
+                     f"| {r['interaction_used_s']:.1f} | {r['wall_seconds']:.0f} | {r['stop_reason']} | `{r['run_id'][:8]}` |")
+    return "\n".join(lines) + "\n"
+
+
+def representative_run(runs: Sequence[RunRecord]) -> RunRecord | None:
+    """The solved run with the median time to success (lower median), else the longest run."""
+    solved = sorted((r for r in runs if r.solved and r.time_to_success is not None), key=lambda r: (r.time_to_success, r.seed))
+    if solved:
+        return solved[(len(solved) - 1) // 2]
+    return max(runs, key=lambda r: (r.interaction_seconds, -r.seed), default=None)
+
+
+def last_prediction_plot(client, run_id: str) -> str | None:
+    """Artifact path of the run's last ``prediction_trial*.png`` (PILCO logs one per trial)."""
+    found: list[str] = []
+    for entry in client.list_artifacts(run_id):
+        if entry.is_dir and entry.path.startswith("trial"):
+            found += [a.path for a in client.list_artifacts(run_id, entry.path)
+                      if Path(a.path).name.startswith("prediction_trial") and a.path.endswith(".png")]
+    return max(found, key=lambda p: Path(p).name, default=None)
+
+
+def copy_prediction_plot(client, task: str, label: str, runs: Sequence[RunRecord], out: Path) -> Path | None:
+    """Download the representative run's last prediction plot to ``prediction_<task>_<label>.png``."""
+    import shutil
+    import tempfile
+
+    run = representative_run(runs)
+    name = last_prediction_plot(client, run.run_id) if run is not None else None
+    if name is None:
+        return None
+    with tempfile.TemporaryDirectory() as tmp:
+        local = client.download_artifacts(run.run_id, name, tmp)
+        target = out / f"prediction_{task}_{label.replace('@', '_')}.png"
+        shutil.copyfile(local, target)
+    return target
+
+
 def fmt_seconds(value: float) -> str:
     if value is None or (isinstance(value, float) and math.isnan(value)):
         return "–"
@@ -503,6 +574,15 @@ def make_report(
         md.write_text(comparison_markdown(task, rows))
         written += [md, write_csv(out / f"comparison_{task}.csv", rows)]
 
+    for task, by_label in by_task.items():
+        rows = [row for label, runs in by_label.items() for row in run_rows(task, label, runs)]
+        (out / f"runs_{task}.md").write_text(runs_markdown(task, rows))
+        written += [out / f"runs_{task}.md", write_csv(out / f"runs_{task}.csv", rows, RUNS_FIELDS)]
+        for label, runs in by_label.items():
+            plot = copy_prediction_plot(client, task, label, runs, out)
+            if plot is not None:
+                written.append(plot)
+
     t1 = table1_rows(by_task, table1_learner)
     (out / "table1.md").write_text(table1_markdown(t1, table1_learner))
     written += [out / "table1.md", write_csv(out / "table1.csv", _flat_table1(t1), TABLE1_FIELDS)]
@@ -514,7 +594,7 @@ def make_report(
     for task, by_label in by_task.items():
         curves = {label: [history(client, r.run_id) for r in runs] for label, runs in by_label.items()}
         table = figures.curve_table(curves)
-        written += [write_csv(out / f"curves_{task}.csv", table), figures.plot_curves(table, out / f"curves_{task}.png", task)]
+        written += [write_csv(out / f"curves_{task}.csv", table), figures.plot_curves(table, out / f"curves_{task}.png", task, curves)]
 
     (out / "sweeps.md").write_text(notes_markdown(data))
     written.append(out / "sweeps.md")

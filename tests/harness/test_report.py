@@ -16,7 +16,8 @@ from scipy import stats
 from harness import sweep
 from harness.cli import main
 from harness.errors import HarnessError
-from harness.report import RunRecord, comparison_row, read_literature, table1_markdown, table1_rows
+from harness.report import (RunRecord, comparison_row, copy_prediction_plot, read_literature, representative_run, run_rows,
+                            runs_markdown, table1_markdown, table1_rows)
 from harness.statistics import bootstrap_ci, iqm, median, stratified_bootstrap, times_with_failures
 from harness.sweep import SweepSpec, run_sweep
 from harness.tracking import open_client
@@ -90,6 +91,57 @@ def test_comparison_row_counts_unsolved_and_errors():
     assert (row["unsolved_interaction_min_s"], row["unsolved_interaction_max_s"]) == (3.0, 40.0)
 
 
+def test_run_rows_give_unsolved_runs_a_lower_bound_not_a_value():
+    runs = [_record(0, True, 15.0, 4.0), _record(1, False, interaction=60.0)]
+    rows = run_rows("cartpole", "pilco", runs)
+    assert rows[0]["time_to_success_s"] == 15.0 and math.isnan(rows[1]["time_to_success_s"])
+    md = runs_markdown("cartpole", rows)
+    assert "| pilco | 0 | yes | 15.0 | 4 | 8.0 |" in md
+    assert "| pilco | 1 | no | > 60.0 (unsolved) | – | 60.0 |" in md
+
+
+def test_representative_run_is_the_lower_median_solved_run_else_the_longest():
+    runs = [_record(0, True, 30.0, 7.0), _record(1, True, 10.0, 3.0), _record(2, True, 20.0, 5.0), _record(3, True, 40.0, 9.0),
+            _record(4, False, interaction=60.0)]
+    assert representative_run(runs).seed == 2  # times 10, 20, 30, 40 -> lower median 20
+    assert representative_run([_record(0, False, interaction=20.0), _record(1, False, interaction=60.0)]).seed == 1
+    assert representative_run([]) is None
+
+
+class _Artifact:
+    def __init__(self, path, is_dir=False):
+        self.path, self.is_dir = path, is_dir
+
+
+class _ArtifactClient:
+    """The two MLflow client calls the report uses, over a local folder."""
+
+    def __init__(self, root: Path):
+        self.root = root
+
+    def list_artifacts(self, run_id, path=None):
+        base = self.root / run_id / (path or "")
+        return [_Artifact(str(p.relative_to(self.root / run_id)), p.is_dir()) for p in sorted(base.iterdir())]
+
+    def download_artifacts(self, run_id, path, dst):
+        return str(self.root / run_id / path)
+
+
+def test_prediction_plot_of_the_representative_run_is_copied(tmp_path):
+    for run, trials in (("run0", (2, 3)), ("run1", (2, 3, 11))):
+        for t in trials:
+            (tmp_path / run / f"trial{t:03d}").mkdir(parents=True)
+            (tmp_path / run / f"trial{t:03d}" / f"prediction_trial{t - 1:03d}.png").write_bytes(f"{run}-{t}".encode())
+        (tmp_path / run / "policies").mkdir()
+    out = tmp_path / "out"
+    out.mkdir()
+    runs = [_record(0, True, 30.0, 7.0), _record(1, True, 10.0, 3.0)]
+    path = copy_prediction_plot(_ArtifactClient(tmp_path), "cartpole", "pilco", runs, out)
+    assert path == out / "prediction_cartpole_pilco.png" and path.read_bytes() == b"run1-11"  # lower median; trial 11 > trial 3
+    (tmp_path / "run2").mkdir()
+    assert copy_prediction_plot(_ArtifactClient(tmp_path), "cartpole", "pilco", [_record(2, True, 5.0, 2.0)], out) is None
+
+
 def test_table1_measured_beside_the_paper():
     runs = [_record(0, True, 15.0, 4.0), _record(1, True, 25.0, 6.0), _record(2, False)]
     rows = table1_rows({"cartpole": {"pilco": runs}}, "pilco")
@@ -139,7 +191,7 @@ def test_report_regenerates_tables_and_figures_from_mlflow(swept, tmp_path):
     cli = CliRunner().invoke(main, ["report", "--tracking-uri", uri, "--sweep", result.sweep_id, "--out", str(out), "--fig5-task", "sweep-toy"])
     assert cli.exit_code == 0, cli.output
     for name in ("comparison_sweep-toy.md", "comparison_sweep-toy.csv", "table1.md", "table1.csv", "fig5.png", "fig5.csv",
-                 "curves_sweep-toy.png", "curves_sweep-toy.csv", "sweeps.md"):
+                 "curves_sweep-toy.png", "curves_sweep-toy.csv", "runs_sweep-toy.md", "runs_sweep-toy.csv", "sweeps.md"):
         assert (out / name).stat().st_size > 0, name
 
     rows = read_rows(out / "comparison_sweep-toy.csv")
@@ -154,6 +206,8 @@ def test_report_regenerates_tables_and_figures_from_mlflow(swept, tmp_path):
     boom = rows["sweep-boom"]  # the learner raised: counted as unsolved and named, not dropped
     assert (boom["runs"], boom["solved"], boom["errors"]) == ("3", "0", "3")
     assert "| sweep-steps | 2/3 | 8.0 [" in (out / "comparison_sweep-toy.md").read_text()
+    per_run = (out / "runs_sweep-toy.md").read_text()
+    assert "| sweep-steps | 2 | yes | 4.0 |" in per_run and "| sweep-steps | 4 | no | > 8.0 (unsolved) |" in per_run
     notes = (out / "sweeps.md").read_text()
     assert "sweep-boom on sweep-toy, seed 3" in notes and "RuntimeError: boom in the learner" in notes
     assert SweepSpec(("sweep-steps", "random", "sweep-boom"), ("sweep-toy",), (2, 3, 4), max_trials=2, eval_episodes=2).command() in notes
