@@ -25,7 +25,7 @@ import shutil
 import tempfile
 import time
 from collections.abc import Iterator
-from dataclasses import dataclass, replace
+from dataclasses import asdict, dataclass, replace
 from pathlib import Path
 from typing import Any, ClassVar
 
@@ -58,6 +58,8 @@ class Preset:
     random_scale: float = 1.0
     sparse_threshold: int = 300
     max_trials: int = 15
+    policy_max_iterations: int = 150
+    policy_max_evaluations: int = 300
     model_exclude: tuple[int, ...] = ()
     policy_exclude: tuple[int, ...] = ()
 
@@ -69,7 +71,9 @@ PRESETS: dict[str, Preset] = {
     "double-pendulum": Preset(controller="rbf", num_centres=200, initial_rollouts=1, sparse_threshold=400, max_trials=40),
     # settings_unicycle.m: linear policy, 10 random rollouts at u_max/5; the GP does not see the yaw
     # (dyni drops phi, observation index 8); the policy sees all 10 states
-    "unicycle": Preset(controller="linear", initial_rollouts=10, random_scale=0.2, sparse_threshold=300, max_trials=40, model_exclude=(8,)),
+    # policy search: at most 150 J evaluations in all (settings_unicycle.m: opt.length = -150)
+    "unicycle": Preset(controller="linear", initial_rollouts=10, random_scale=0.2, sparse_threshold=300, max_trials=40,
+                       policy_max_evaluations=150, model_exclude=(8,)),
     # dm_control: the observation already carries cos/sin of the pole angle
     "dmc-cartpole": Preset(controller="rbf", num_centres=50, initial_rollouts=1, sparse_threshold=300, max_trials=15),
 }
@@ -152,8 +156,8 @@ class Pilco(Learner):
         Option("num_pseudo", int, None, "FITC pseudo-inputs (default: the sparse threshold)", low=1),
         Option("gp_max_evals", int, 300, "GP hyperparameter L-BFGS evaluations per trial", low=0),
         Option("gp_restarts", int, 0, "extra GP training runs from perturbed starts (best kept)", low=0),
-        Option("policy_max_iterations", int, 150, "L-BFGS iterations (~line searches) per policy search", low=1),
-        Option("policy_max_evaluations", int, 300, "J+dJ evaluations per policy search", low=1),
+        Option("policy_max_iterations", int, None, "L-BFGS iterations (~line searches) per policy search (default: task preset, 150)", low=1),
+        Option("policy_max_evaluations", int, None, "J+dJ evaluations per policy search (default: task preset, 300; unicycle 150)", low=1),
         Option("threads", int, 1, "torch threads (1 when several runs share the machine)", low=1),
         Option("plots", bool, True, "save the predicted-vs-realised cost plot per trial"),
     )
@@ -169,6 +173,8 @@ class Pilco(Learner):
             initial_rollouts=o["initial_rollouts"] or preset.initial_rollouts,
             random_scale=preset.random_scale if o["random_scale"] is None else o["random_scale"],
             sparse_threshold=o["sparse_threshold"] or preset.sparse_threshold,
+            policy_max_iterations=o["policy_max_iterations"] or preset.policy_max_iterations,
+            policy_max_evaluations=o["policy_max_evaluations"] or preset.policy_max_evaluations,
         )
         self.layout = layout_for(spec, self.preset)
         self.horizon = o["planning_horizon"] or spec.horizon
@@ -249,7 +255,7 @@ class Pilco(Learner):
                 )
                 previous = objective.get_flat()
                 try:
-                    search = optimise_policy(objective, o["policy_max_iterations"], o["policy_max_evaluations"])
+                    search = optimise_policy(objective, self.preset.policy_max_iterations, self.preset.policy_max_evaluations)
                     failed = 0.0
                 except NumericalError:
                     objective.set_flat(previous)  # keep the previous policy, say so in the metrics
@@ -257,6 +263,8 @@ class Pilco(Learner):
                 predicted = objective.predicted_costs()
                 self.metrics = self._trial_metrics(fit, search, failed, predicted, objective.num_params)
                 self.artifacts += self._save_model(workdir, trial, model, fit)
+                if trial == 1:
+                    self.artifacts.append(self._save_settings(workdir))
                 self._state = {
                     "controller": copy.deepcopy(controller.state_dict()),
                     "hyperparameters": hyperparameters,
@@ -266,6 +274,17 @@ class Pilco(Learner):
                 yield PilcoPolicy(copy.deepcopy(controller), self.layout)
         finally:
             shutil.rmtree(workdir, ignore_errors=True)
+
+    def _save_settings(self, workdir: Path) -> Path:
+        """``pilco_settings.json``: the resolved preset (options over the task's defaults) and layout."""
+        settings = {
+            "preset": asdict(self.preset), "planning_horizon": self.horizon, "num_pseudo": self.num_pseudo,
+            "model_inputs": list(self.layout.model_inputs), "policy_inputs": list(self.layout.policy_inputs),
+            "mean_only": self.mean_only,
+        }
+        path = workdir / "pilco_settings.json"
+        path.write_text(json.dumps(settings, indent=1))
+        return path
 
     def state_dict(self) -> dict[str, Any]:
         """Controller parameters, GP hyperparameters (warm start), trial, pending prediction."""

@@ -2,6 +2,8 @@
 
 from __future__ import annotations
 
+import json
+
 import numpy as np
 import pytest
 import torch
@@ -10,7 +12,8 @@ from harness.discovery import load_learner
 from harness.runner import RunConfig, run
 from harness.testing import LearnerConformance
 from harness.tracking import MemoryTracker
-from plugins.pilco.learner import Pilco, PilcoMean, layout_for, transitions, PRESETS
+from plugins.pilco.learner import PRESETS, Pilco, PilcoMean, layout_for, transitions
+from tasks.cartpole import CartPole
 
 TINY = {"num_centres": "5", "policy_max_evaluations": "15", "gp_max_evals": "40", "plots": "true"}
 
@@ -32,8 +35,22 @@ def test_pilco_smoke_on_short_cartpole():
     assert dict(tracker.metrics["n_data"]) == {1: 15.0, 2: 30.0}
     assert dict(tracker.metrics["policy_parameters"])[1] == 5 * 5 + 5 + 5  # n_c p + n_c F + F p
     names = {p.name for p, _ in tracker.artifacts}
-    assert {"model_trial001.pt", "gp_hyperparameters_trial001.json", "prediction_trial001.png"} <= names
+    assert {"model_trial001.pt", "gp_hyperparameters_trial001.json", "prediction_trial001.png", "pilco_settings.json"} <= names
     assert tracker.status == "FINISHED"
+    folder = next(folder for p, folder in tracker.artifacts if p.name == "pilco_settings.json")
+    settings = json.loads((tracker.root / (folder or "") / "pilco_settings.json").read_text())
+    assert settings["preset"]["num_centres"] == 5 and settings["preset"]["policy_max_evaluations"] == 15
+    assert settings["preset"]["policy_max_iterations"] == 150 and settings["planning_horizon"] == 15
+
+
+def test_policy_search_budget_comes_from_the_task_preset():
+    """The unicycle's reference budget is 150 J evaluations in all; options override presets."""
+    from tasks.unicycle import Unicycle
+
+    unicycle = Pilco(Unicycle().spec, {}, seed=0)
+    assert (unicycle.preset.policy_max_iterations, unicycle.preset.policy_max_evaluations) == (150, 150)
+    cartpole = Pilco(CartPole().spec, {"policy_max_iterations": "40"}, seed=0)
+    assert (cartpole.preset.policy_max_iterations, cartpole.preset.policy_max_evaluations) == (40, 300)
 
 
 def test_entry_points_and_ablation_flag():
