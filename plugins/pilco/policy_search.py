@@ -14,6 +14,7 @@ from dataclasses import dataclass
 
 import numpy as np
 import scipy.optimize
+import torch
 from threadpoolctl import threadpool_limits
 
 from harness.errors import NumericalError
@@ -53,7 +54,7 @@ def optimise_policy(objective: PolicyObjective, max_iterations: int = 150, max_e
         counts["evaluations"] += 1
         try:
             value, grad = objective.value_and_grad(theta)
-        except NumericalError:
+        except (NumericalError, torch.linalg.LinAlgError):  # e.g. a propagated covariance lost definiteness
             value, grad = math.inf, np.zeros_like(theta)
         if not (math.isfinite(value) and np.all(np.isfinite(grad))):
             counts["failed"] += 1

@@ -1,0 +1,62 @@
+"""Policy search: L-BFGS-B backs off from points where the closed form breaks down."""
+
+from __future__ import annotations
+
+import math
+
+import numpy as np
+import pytest
+import torch
+
+from harness.errors import NumericalError
+from plugins.pilco.policy_search import optimise_policy
+
+
+class Quadratic:
+    """``J = |theta - target|^2`` (the duck type of PolicyObjective); raises like a broken
+    propagation (``torch.linalg.LinAlgError``) where ``theta[0] > wall``."""
+
+    def __init__(self, target, wall=math.inf, error=torch.linalg.LinAlgError):
+        self.theta = np.zeros(len(target))
+        self.target, self.wall, self.error = np.asarray(target, dtype=float), wall, error
+        self.calls = 0
+
+    def get_flat(self):
+        return self.theta.copy()
+
+    def set_flat(self, theta):
+        self.theta = np.asarray(theta, dtype=float).copy()
+
+    def value_and_grad(self, theta):
+        self.calls += 1
+        self.set_flat(theta)
+        if theta[0] > self.wall:
+            raise self.error("linalg.cholesky: the input is not positive-definite")
+        d = theta - self.target
+        return float(d @ d), 2 * d
+
+
+def test_converges_on_a_smooth_objective():
+    objective = Quadratic([1.0, -2.0, 0.5])
+    result = optimise_policy(objective, max_iterations=50, max_evaluations=100)
+    np.testing.assert_allclose(result.theta, [1.0, -2.0, 0.5], atol=1e-6)
+    assert result.J_before == pytest.approx(5.25) and result.J_after < 1e-10 and result.failed_evaluations == 0
+    np.testing.assert_array_equal(objective.get_flat(), result.theta)  # the best is left in the controller
+
+
+@pytest.mark.parametrize("error", [torch.linalg.LinAlgError, NumericalError])
+def test_failed_points_count_as_inf_and_the_best_finite_point_is_kept(error):
+    objective = Quadratic([2.0, 1.0], wall=1.5, error=error)  # the minimum lies beyond the wall
+    result = optimise_policy(objective, max_iterations=50, max_evaluations=100)
+    assert result.failed_evaluations >= 1
+    assert result.theta[0] <= 1.5 and math.isfinite(result.J_after) and result.J_after < result.J_before
+    assert result.J_after == pytest.approx(float(np.sum((result.theta - [2.0, 1.0]) ** 2)))
+    np.testing.assert_array_equal(objective.get_flat(), result.theta)
+
+
+def test_a_broken_start_is_a_numerical_error_and_keeps_the_policy():
+    objective = Quadratic([2.0], wall=-1.0)
+    objective.set_flat(np.array([0.5]))
+    with pytest.raises(NumericalError, match="not finite at the starting policy"):
+        optimise_policy(objective)
+    np.testing.assert_array_equal(objective.get_flat(), [0.5])
