@@ -155,10 +155,7 @@ class _ExpBilinearContraction(torch.autograd.Function):
 
 
 #: the posterior-derived tensors of :class:`MomentMatchingGP` that gradients may flow to
-_CONSTANTS = (
-    "X_s", "X_a", "X_b", "inv_ell", "inv_lam_a", "inv_lam_b", "scale_outer", "inv_dd",
-    "log_alpha2", "alpha2", "beta", "beta_a", "beta_b", "inv_k",
-)
+_CONSTANTS = ("X_z", "scale_z", "scale_outer", "inv_dd", "log_alpha2", "alpha2", "beta", "beta_a", "beta_b", "inv_k")
 
 
 class MomentMatchingGP:
@@ -171,6 +168,15 @@ class MomentMatchingGP:
     ``S`` and the prepared tensors; autograd carries them on to the posterior's parameters once).
     It has a third of the operator calls of autograd through the same forward
     (:meth:`_forward` with ``contract=None``, kept as the reference the tests compare against).
+
+    The three scaled differences every prediction needs are one stacked tensor of ``G = E + 2P``
+    groups, ``Z = X_z - m scale_z`` (``(G, n, d)``)::
+
+        Z[:E]        = iL_a nu_i          (mean and cross-covariance, and log k_a(X_i, m))
+        Z[E:E+P]     = Lambda_a^-1 nu_i   (pair (a, b): left factor of Q)
+        Z[E+P:]      = Lambda_b^-1 nu_j   (pair (a, b): right factor of Q)
+
+    so that their quadratic forms are one batched product with ``W = [B_a^-1; T; T]``.
     """
 
     def __init__(self, posterior: GPPosterior) -> None:
@@ -178,24 +184,26 @@ class MomentMatchingGP:
         beta = posterior.beta
         self.num_outputs = e = beta.shape[0]
         first, second, self.full = _pair_indices(e)
+        self.num_pairs = p = first.shape[0]
         X = posterior.inputs
-        self.inv_ell = torch.exp(-posterior.log_ell)  # (E, d)
-        inv_lam = self.inv_ell * self.inv_ell  # (E, d) diagonal of Lambda_a^-1
+        self.input_dim = d = X.shape[1]
+        inv_ell = torch.exp(-posterior.log_ell)  # (E, d)
+        inv_lam = inv_ell * inv_ell  # (E, d) diagonal of Lambda_a^-1
         self.log_alpha2 = 2.0 * posterior.log_alpha  # (E,)
         self.alpha2 = torch.exp(self.log_alpha2)
-        self.X_s = X * self.inv_ell[:, None, :]  # (E, n, d)  iL_a X_i
+        self.scale_z = torch.cat([inv_ell, inv_lam[first], inv_lam[second]], dim=0)  # (G, d)
+        self.X_z = X * self.scale_z[:, None, :]  # (G, n, d)
         dh = torch.sqrt(inv_lam[first] + inv_lam[second])  # (P, d)
         self.inv_dd = 1.0 / (dh[:, :, None] * dh[:, None, :])  # (P, d, d)
-        scale = torch.cat([self.inv_ell, dh], dim=0)  # (E + P, d)
+        scale = torch.cat([inv_ell, dh], dim=0)  # (E + P, d)
         self.scale_outer = scale[:, :, None] * scale[:, None, :]  # (E + P, d, d)
-        self.inv_lam_a, self.inv_lam_b = inv_lam[first], inv_lam[second]  # (P, d)
-        self.X_a = X * self.inv_lam_a[:, None, :]  # (P, n, d)  Lambda_a^-1 X_i
-        self.X_b = X * self.inv_lam_b[:, None, :]
         self.first, self.second = first, second
+        self.pair_outputs = torch.cat([first, second])  # (2P,) output of each pair group of Z
         self.beta = beta
         self.beta_a, self.beta_b = beta[first], beta[second]
         self.inv_k = posterior.inv_k.contiguous()
-        self.input_dim = X.shape[1]
+        self.eye = torch.eye(d, dtype=beta.dtype)
+        self.ones = torch.ones(p, X.shape[0], 1, dtype=beta.dtype)
         self.workspace = _Workspace()
         self.constants = tuple(getattr(self, name) for name in _CONSTANTS)
         self.has_grad = any(t.requires_grad for t in self.constants)
@@ -217,50 +225,46 @@ class MomentMatchingGP:
         """The moment-matching arithmetic; ``contract=None`` uses the autograd Function for the
         exp-contraction (autograd reference path), otherwise the plain forward.
         Returns ``((M, V, C), intermediates for _backward)``."""
-        e = self.num_outputs
-        d = m.shape[0]
-        eye = torch.eye(d, dtype=S.dtype, device=S.device)
+        e, p = self.num_outputs, self.num_pairs
 
         # One batched Cholesky for B_a = iL_a S iL_a + I (mean, cross-cov; E of them) and for
         # B_ab = D S D + I, D^2 = Lambda_a^-1 + Lambda_b^-1 (Q; P of them).
-        chol = torch.linalg.cholesky(self.scale_outer * S + eye)
+        chol = torch.linalg.cholesky(self.scale_outer * S + self.eye)
         b_inv = torch.cholesky_inverse(chol)  # (E + P, d, d)
         half_logdet = torch.log(torch.diagonal(chol, dim1=-2, dim2=-1)).sum(-1)  # (E + P,)
+        # T = R^-1 S / 2 = D^-1 (I - B^-1) D^-1 / 2 with R = S (Lambda_a^-1 + Lambda_b^-1) + I
+        half_i_minus_binv = 0.5 * (self.eye - b_inv[e:])
+        T = half_i_minus_binv * self.inv_dd  # (P, d, d)
+        W = torch.cat([b_inv[:e], T, T], dim=0)  # (G, d, d)
+
+        Z = self.X_z - m * self.scale_z[:, None, :]  # (G, n, d), see the class docstring
+        ZW = torch.bmm(Z, W)  # (G, n, d): [B_a^-1 iL_a nu_i, Lambda_a^-1 nu_i T, Lambda_b^-1 nu_j T]
+        zwz = (Z * ZW).sum(-1)  # (G, n)
+        nu_s, t = Z[:e], ZW[:e]
 
         # ---- mean and cross-covariance --------------------------------------------------------
-        nu_s = self.X_s - m * self.inv_ell[:, None, :]  # (E, n, d)  iL_a nu_i,  nu_i = X_i - m
-        t = nu_s @ b_inv[:e]  # (E, n, d)  B_a^-1 iL_a nu_i
-        sq = (nu_s * nu_s).sum(-1)  # (E, n)
-        log_q = (self.log_alpha2 - half_logdet[:e])[:, None] - 0.5 * (nu_s * t).sum(-1)  # (E, n)
+        log_q = (self.log_alpha2 - half_logdet[:e])[:, None] - 0.5 * zwz[:e]  # (E, n)
         q = torch.exp(log_q)
         lb = q * self.beta  # (E, n)  beta_ai q_ai
         M = lb.sum(-1)
         # S^-1 cov[x, f_a] = sum_i beta_ai q_ai (S + Lambda_a)^-1 nu_i,  (S + Lambda_a)^-1 nu_i = iL_a t_ai
-        lbt = (lb[:, None, :] @ t).squeeze(1)  # (E, d)
-        C = (lbt * self.inv_ell).T  # (d, E)
+        lbt = torch.bmm(lb[:, None, :], t).squeeze(1)  # (E, d)
+        C = (lbt * self.scale_z[:e]).T  # (d, E)
 
         # ---- second moments: Q for the pairs a <= b -------------------------------------------
-        # T = R^-1 S / 2 = D^-1 (I - B^-1) D^-1 / 2 with R = S (Lambda_a^-1 + Lambda_b^-1) + I
-        half_i_minus_binv = 0.5 * (eye - b_inv[e:])
-        T = half_i_minus_binv * self.inv_dd  # (P, d, d)
-        za = self.X_a - m * self.inv_lam_a[:, None, :]  # (P, n, d)  Lambda_a^-1 nu_i
-        zb = self.X_b - m * self.inv_lam_b[:, None, :]  # (P, n, d)  Lambda_b^-1 nu_j
-        za_t = za @ T
-        zb_t = zb @ T
-        log_k = self.log_alpha2[:, None] - 0.5 * sq  # (E, n)  log k_a(X_i, m)
-        u = log_k[self.first] + (za_t * za).sum(-1) - half_logdet[e:, None]  # (P, n)
-        v = log_k[self.second] + (zb_t * zb).sum(-1)  # (P, n)
-        ones = torch.ones_like(u)[..., None]
+        log_k = self.log_alpha2[:, None] - 0.5 * (nu_s * nu_s).sum(-1)  # (E, n)  log k_a(X_i, m)
+        u = log_k[self.first] + zwz[e : e + p] - half_logdet[e:, None]  # (P, n)
+        v = log_k[self.second] + zwz[e + p :]  # (P, n)
         # exponent_ij = 2 a_i^T T b_j + u_i + v_j = log Q_ij  (expanded bilinear form, one product)
-        left = torch.cat([2.0 * za_t, u[..., None], ones], dim=-1)  # (P, n, d + 2)
-        right = torch.cat([zb, ones, v[..., None]], dim=-1)  # (P, n, d + 2)
+        left = torch.cat([2.0 * ZW[e : e + p], u[..., None], self.ones], dim=-1)  # (P, n, d + 2)
+        right = torch.cat([Z[e + p :], self.ones, v[..., None]], dim=-1)  # (P, n, d + 2)
         inv_k = self.inv_k[:0] if mean_only else self.inv_k
         if contract is None:
             quad, trace = _ExpBilinearContraction.apply(left, right, self.beta_a, self.beta_b, inv_k, self.workspace, slot)
             saved = None
         else:
             quad, trace, Q, q_wr = contract(left, right, self.beta_a, self.beta_b, inv_k, self.workspace, slot)
-            saved = (m, S, b_inv, nu_s, t, q, lb, lbt, za, zb, za_t, zb_t, T, half_i_minus_binv, left, right, inv_k, Q, q_wr, M)
+            saved = (m, S, b_inv, half_i_minus_binv, W, Z, ZW, q, lb, lbt, left, right, inv_k, Q, q_wr, M)
         V = quad[self.full].reshape(e, e) - M[:, None] * M[None, :]
         if not mean_only:
             V = V + torch.diag(self.alpha2 - trace)
@@ -268,43 +272,44 @@ class MomentMatchingGP:
 
     def _backward(self, saved, gM, gV, gC, mean_only, needs):
         """Hand-derived gradients of ``(M, V, C)`` wrt ``(m, S, *constants)`` (``None`` where not needed)."""
-        m, S, b_inv, nu_s, t, q, lb, lbt, za, zb, za_t, zb_t, T, half_i_minus_binv, left, right, inv_k, Q, q_wr, M = saved
-        e, d = self.num_outputs, nu_s.shape[-1]
+        m, S, b_inv, half_i_minus_binv, W, Z, ZW, q, lb, lbt, left, right, inv_k, Q, q_wr, M = saved
+        e, p, d = self.num_outputs, self.num_pairs, self.input_dim
         need_c = dict(zip(_CONSTANTS, needs[2:]))
         # V = quad[full] - M M^T + diag(alpha2 - trace)
-        g_quad = torch.zeros(self.first.shape[0], dtype=gV.dtype).index_add_(0, self.full, gV.reshape(-1))
+        g_quad = torch.zeros(p, dtype=gV.dtype).index_add_(0, self.full, gV.reshape(-1))
         g_trace = None if mean_only else -torch.diagonal(gV)
         gM = gM - (gV + gV.T) @ M
         grad_left, grad_right, g_beta_a, g_beta_b, g_inv_k = _contract_backward(
             left, right, self.beta_a, self.beta_b, inv_k, Q, q_wr, g_quad, g_trace, self.workspace,
             (True, True, need_c["beta_a"], need_c["beta_b"], need_c["inv_k"] and not mean_only),
         )
-        # left = [2 za T, u, 1], right = [zb, 1, v]
-        g_zaT = 2.0 * grad_left[..., :d]  # dL/d(za T)
-        g_u = grad_left[..., d]  # (P, n)
-        g_zb = grad_right[..., :d]
-        g_v = grad_right[..., d + 1]
-        # u = log_k[first] + za^T T za - hl_p ;  v = log_k[second] + zb^T T zb  (T symmetric)
-        g_za = g_zaT @ T + 2.0 * g_u[..., None] * za_t
-        g_zb = g_zb + 2.0 * g_v[..., None] * zb_t
-        g_T = za.mT @ (g_zaT + g_u[..., None] * za) + zb.mT @ (g_v[..., None] * zb)  # (P, d, d)
-        g_logk = torch.zeros(e, g_u.shape[1], dtype=g_u.dtype).index_add_(0, self.first, g_u).index_add_(0, self.second, g_v)
+        # left = [2 Z_a T, u, 1], right = [Z_b, 1, v];  u = log_k[first] + zwz_a - hl_p,  v = log_k[second] + zwz_b
+        g_uv = torch.cat([grad_left[..., d], grad_right[..., d + 1]], dim=0)  # (2P, n)
+        g_logk = torch.zeros(e, g_uv.shape[1], dtype=g_uv.dtype).index_add_(0, self.pair_outputs, g_uv)
         # mean part: C = (lbt * iL)^T, lbt_a = lb_a @ t_a,  M = sum lb,  lb = q beta
-        w = gC.T * self.inv_ell  # (E, d)  dL/dlbt
-        g_lb = gM[:, None] + (t @ w[..., None]).squeeze(-1)  # (E, n)
+        w = gC.T * self.scale_z[:e]  # (E, d)  dL/dlbt
+        g_lb = gM[:, None] + torch.bmm(ZW[:e], w[:, :, None]).squeeze(-1)  # (E, n)
         g_logq = g_lb * lb
-        # log_q = la2 - hl_a - 1/2 nu_s . t ;  log_k = la2 - 1/2 |nu_s|^2 ;  t = nu_s @ B_a^-1
-        g_t = lb[..., None] * w[:, None, :] - 0.5 * g_logq[..., None] * nu_s
-        g_nu = g_t @ b_inv[:e] - 0.5 * g_logq[..., None] * t - g_logk[..., None] * nu_s
-        g_hl = torch.cat([-g_logq.sum(-1), -g_u.sum(-1)])  # (E + P,)  d/d(1/2 log|B|)
-        g_binv = torch.cat([nu_s.mT @ g_t, -0.5 * g_T * self.inv_dd], dim=0) if needs[1] or need_c["scale_outer"] else None
+        # gradients wrt zwz = sum(Z * ZW), wrt ZW where it is used directly, and wrt Z where it is
+        # used directly (log_k = la2 - 1/2 |Z_mean|^2; right = [Z_b, ...])
+        g_zwz = torch.cat([-0.5 * g_logq, g_uv], dim=0)  # (G, n)
+        g_ZW = torch.cat([lb[..., None] * w[:, None, :], 2.0 * grad_left[..., :d]], dim=0)  # (E + P, n, d)
+        g_Z_direct = torch.cat([-g_logk[..., None] * Z[:e], grad_right[..., :d]], dim=0)  # rows [:E] and [E+P:]
+        # ZW = Z W with W symmetric:  dZ = 2 g_zwz ZW + g_ZW W,  dW = Z^T (g_ZW + g_zwz Z)
+        g_Z = 2.0 * g_zwz[..., None] * ZW
+        g_Z[: e + p].add_(torch.bmm(g_ZW, W[: e + p]))
+        g_Z[:e].add_(g_Z_direct[:e])
+        g_Z[e + p :].add_(g_Z_direct[e:])
+        g_W = torch.bmm(Z.mT, g_zwz[..., None] * Z)  # (G, d, d)
+        g_W[: e + p].add_(torch.bmm(Z[: e + p].mT, g_ZW))
+        g_T = g_W[e : e + p] + g_W[e + p :]  # (P, d, d): T is used twice in W
+        g_hl = torch.cat([-g_logq.sum(-1), -g_uv[:p].sum(-1)])  # (E + P,)  d/d(1/2 log|B|)
         grads = {}
+        g_Z_sum = g_Z.sum(1)  # (G, d);  Z = X_z - m scale_z
         if needs[0]:
-            # nu_s = X_s - m iL,  za = X_a - m la_a,  zb = X_b - m la_b
-            grads["m"] = -(
-                (g_nu.sum(1) * self.inv_ell).sum(0) + (g_za.sum(1) * self.inv_lam_a).sum(0) + (g_zb.sum(1) * self.inv_lam_b).sum(0)
-            )
-        if g_binv is not None:
+            grads["m"] = -(g_Z_sum * self.scale_z).sum(0)
+        if needs[1] or need_c["scale_outer"]:
+            g_binv = torch.cat([g_W[:e], -0.5 * g_T * self.inv_dd], dim=0)  # T = 1/2 (I - B^-1) inv_dd
             # B^-1 and 1/2 log|B| of B = scale_outer * S + I
             g_B = 0.5 * g_hl[:, None, None] * b_inv - b_inv @ g_binv @ b_inv
             if needs[1]:
@@ -314,15 +319,11 @@ class MomentMatchingGP:
                 grads["S"] = 0.5 * (g_S + g_S.T)
             if need_c["scale_outer"]:
                 grads["scale_outer"] = g_B * S
-        grads["X_s"] = g_nu
-        grads["X_a"] = g_za
-        grads["X_b"] = g_zb
-        if need_c["inv_ell"]:
-            grads["inv_ell"] = gC.T * lbt - m * g_nu.sum(1)
-        if need_c["inv_lam_a"]:
-            grads["inv_lam_a"] = -m * g_za.sum(1)
-        if need_c["inv_lam_b"]:
-            grads["inv_lam_b"] = -m * g_zb.sum(1)
+        grads["X_z"] = g_Z
+        if need_c["scale_z"]:
+            g_scale = -m * g_Z_sum
+            g_scale[:e].add_(gC.T * lbt)
+            grads["scale_z"] = g_scale
         if need_c["inv_dd"]:
             grads["inv_dd"] = g_T * half_i_minus_binv
         grads["log_alpha2"] = g_logq.sum(-1) + g_logk.sum(-1)
@@ -350,7 +351,7 @@ class _MomentsFunction(torch.autograd.Function):
         # leaked ~17 MB per J+dJ at n = 80 and OOM-killed a cart-pole run); keep a detached alias.
         saved = (*saved[:-1], saved[-1].detach())
         ctx.gp, ctx.mean_only, ctx.saved = gp, mean_only, saved
-        ctx.save_for_backward(saved[17])  # Q: version-checked against work-buffer reuse
+        ctx.save_for_backward(saved[13])  # Q: version-checked against work-buffer reuse
         return M, V, C
 
     @staticmethod
