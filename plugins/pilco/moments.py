@@ -221,6 +221,20 @@ class MomentMatchingGP:
             return _MomentsFunction.apply(m, S, self, mean_only, slot, *self.constants)
         return self._forward(m, S, mean_only, slot, contract=_contract_forward)[0]
 
+    def forward(self, m: torch.Tensor, S: torch.Tensor, mean_only: bool = False, slot: int | None = None):
+        """:meth:`predict` without autograd, for callers with their own backward pass.
+
+        Returns ``((M, V, C), saved)``; ``saved`` is what :meth:`backward` needs (it holds the
+        ``(P, n, n)`` work buffer of ``slot``; do not reuse the slot before the backward pass).
+        """
+        return self._forward(m, S, mean_only, slot, contract=_contract_forward)
+
+    def backward(self, saved, gM: torch.Tensor, gV: torch.Tensor, gC: torch.Tensor, mean_only: bool, needs):
+        """Gradients wrt ``(m, S, *self.constants)`` of a loss with gradients ``gM (E,)``,
+        ``gV (E, E)``, ``gC (d, E)`` wrt the results of :meth:`forward` (same ``mean_only``).
+        ``needs``: ``2 + len(self.constants)`` booleans; ``None`` is returned where ``False``."""
+        return self._backward(saved, gM, gV, gC, mean_only, needs)
+
     def _forward(self, m, S, mean_only, slot, contract):
         """The moment-matching arithmetic; ``contract=None`` uses the autograd Function for the
         exp-contraction (autograd reference path), otherwise the plain forward.

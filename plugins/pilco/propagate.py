@@ -21,10 +21,10 @@ from functools import cached_property
 import numpy as np
 import torch
 
-from plugins.pilco.controllers import MomentMap
+from plugins.pilco.controllers import MomentMap, MomentStage
 from plugins.pilco.moments import MomentMatchingGP
 from plugins.pilco.posterior import GPPosterior
-from plugins.pilco.trig import augment_trig
+from plugins.pilco.trig import _doubled, _sin_backward, _sin_forward, augment_trig
 
 
 @dataclass(frozen=True)
@@ -111,7 +111,27 @@ def propagate_step(
     ``controller.moment_map()`` (build both once per rollout); ``mean_only`` is passed to
     :meth:`~plugins.pilco.moments.MomentMatchingGP.predict` (deterministic-GP-mean ablation),
     ``slot`` too (work-buffer reuse across rollouts; the rollout passes the time step).
+
+    With a :class:`~plugins.pilco.controllers.MomentStage` policy and a fixed dynamics model (no
+    gradients wrt its posterior) the step is one autograd node with a hand-derived backward pass
+    (:class:`FusedStep`); otherwise autograd goes through :func:`propagate_step_autograd`.
     """
+    if isinstance(policy_moments, MomentStage) and not dynamics.has_grad:
+        return FusedStep(dynamics, policy_moments, layout, mean_only)(m, S, slot)
+    return propagate_step_autograd(m, S, dynamics, policy_moments, layout, mean_only, slot)
+
+
+def propagate_step_autograd(
+    m: torch.Tensor,
+    S: torch.Tensor,
+    dynamics: MomentMatchingGP,
+    policy_moments: MomentMap,
+    layout: StateLayout,
+    mean_only: bool = False,
+    slot: int | None = None,
+) -> tuple[torch.Tensor, torch.Tensor]:
+    """:func:`propagate_step` composed of differentiable pieces, differentiated by autograd
+    (the reference for :class:`FusedStep`, and the path for dynamics models with gradients)."""
     d = layout.state_dim
     ma, sa = augment_trig(m, S, layout.angle_map)  # (A,), (A, A)
     pol, mod = layout.policy_index, layout.model_index
@@ -130,6 +150,124 @@ def propagate_step(
     s_xd = s_x_in @ cd  # (D, D) cov[x, Delta]
     s_next = S + vd + s_xd + s_xd.T
     return m + md, 0.5 * (s_next + s_next.T)
+
+
+class FusedStep:
+    """One time step (:func:`propagate_step`) as a forward/backward pair: one autograd node per step.
+
+    The stages and their intermediates, for ``A = D + 2K`` augmented entries, ``p`` policy inputs,
+    ``F`` controls and ``q`` model inputs (selections are exact 0/1 matrices)::
+
+        trig:     (mt, vt, ct) = moments of [sin, cos](angles)       (2K,), (2K, 2K), (D, 2K)
+        augment:  ma = [m, mt],  sa = [[S, S ct], [ct^T S, vt]]        (A,), (A, A)
+        policy:   mp = P_pol ma,  sa_p = sa P_pol^T,  sp = P_pol sa_p  (p,), (A, p), (p, p)
+                  (mu, su, cu) = policy(mp, sp),  s_au = sa_p cu       (F,), (F, F), (p, F), (A, F)
+        joint:    mj = [ma, mu],  Sig = [[sa, s_au], [s_au^T, su]]     (A + F,), (A + F, A + F)
+        GP input: m_in = P_in mj,  Sig_in = Sig P_in^T,  s_in = P_in Sig_in
+        dynamics: (md, vd, cd) = GP moments(m_in, s_in)               (D,), (D, D), (q + F, D)
+        update:   s_xd = Sig_in[:D] cd,  m' = m + md,  S' = sym(S + vd + s_xd + s_xd^T)
+
+    The backward pass runs these in reverse with the stages' own backward passes
+    (:func:`~plugins.pilco.trig._sin_backward`, :meth:`MomentStage.backward`,
+    :meth:`MomentMatchingGP.backward`) and returns gradients wrt ``m``, ``S`` and the policy
+    stage's tensors. Numerically it is the same computation as :func:`propagate_step_autograd`.
+    """
+
+    def __init__(self, dynamics: MomentMatchingGP, policy: MomentStage, layout: StateLayout, mean_only: bool) -> None:
+        self.dynamics, self.policy, self.layout, self.mean_only = dynamics, policy, layout, mean_only
+        a, f = layout.augmented_dim, dynamics.input_dim - layout.model_input_dim
+        self.p_pol = _selection(layout.policy_inputs, a)  # (p, A)
+        self.p_in = _selection(layout.model_inputs + tuple(range(a, a + f)), a + f)  # (q + F, A + F)
+        self.trig_maps = _doubled(layout.angle_map) if layout.num_angles else None
+        self.dyn_needs = (True, True) + (False,) * len(dynamics.constants)
+
+    def __call__(self, m: torch.Tensor, S: torch.Tensor, slot: int | None) -> tuple[torch.Tensor, torch.Tensor]:
+        tensors = self.policy.tensors
+        if torch.is_grad_enabled() and (m.requires_grad or S.requires_grad or any(t.requires_grad for t in tensors)):
+            return _StepFunction.apply(m, S, self, slot, *tensors)
+        return self.forward(m, S, slot)[0]
+
+    def forward(self, m, S, slot):
+        """``((m', S'), saved)`` without autograd."""
+        d = self.layout.state_dim
+        if self.trig_maps is None:
+            ma, sa, ct, saved_trig = m, S, None, None
+        else:
+            (mt, vt, ct), saved_trig = _sin_forward(m, S, *self.trig_maps)
+            sc = S @ ct  # (D, 2K) cov[x, trig]
+            ma = torch.cat([m, mt])
+            sa = torch.cat([torch.cat([S, sc], dim=1), torch.cat([sc.T, vt], dim=1)], dim=0)
+        a = ma.shape[0]
+        sa_p = sa @ self.p_pol.T  # (A, p)
+        (mu, su, cu), saved_pol = self.policy.forward(self.p_pol @ ma, self.p_pol @ sa_p)
+        s_au = sa_p @ cu  # (A, F) cov[a, u]
+        mj = torch.cat([ma, mu])
+        sig = torch.cat([torch.cat([sa, s_au], dim=1), torch.cat([s_au.T, su], dim=1)], dim=0)
+        sig_in = sig @ self.p_in.T  # (A + F, q + F)
+        (md, vd, cd), saved_dyn = self.dynamics.forward(self.p_in @ mj, self.p_in @ sig_in, self.mean_only, slot)
+        x_in = sig_in[:d]  # (D, q + F) cov[x, GP input]
+        s_xd = x_in @ cd  # (D, D) cov[x, Delta]
+        s_next = S + vd + s_xd + s_xd.T
+        saved = (S, ct, saved_trig, sa_p, cu, saved_pol, x_in, cd, saved_dyn, a)
+        return (m + md, 0.5 * (s_next + s_next.T)), saved
+
+    def backward(self, saved, g_m1, g_S1, needs):
+        """Gradients wrt ``(m, S, *policy.tensors)`` given those wrt ``(m', S')`` (``needs``: for the tensors)."""
+        S, ct, saved_trig, sa_p, cu, saved_pol, x_in, cd, saved_dyn, a = saved
+        d = self.layout.state_dim
+        h = 0.5 * (g_S1 + g_S1.T)  # through the symmetrisation
+        g_sxd = h + h.T
+        g_m_in, g_s_in = self.dynamics.backward(saved_dyn, g_m1, h, x_in.T @ g_sxd, self.mean_only, self.dyn_needs)[:2]
+        g_mj = self.p_in.T @ g_m_in  # (A + F,)
+        g_sig_in = self.p_in.T @ g_s_in  # (A + F, q + F)
+        g_sig_in[:d] += g_sxd @ cd.T
+        g_sig = g_sig_in @ self.p_in  # (A + F, A + F)
+        g_sau = g_sig[:a, a:] + g_sig[a:, :a].T  # (A, F)
+        g_mp, g_sp, *g_policy = self.policy.backward(saved_pol, g_mj[a:], g_sig[a:, a:], sa_p.T @ g_sau, needs)
+        g_ma = g_mj[:a] + self.p_pol.T @ g_mp
+        g_sa_p = g_sau @ cu.T + self.p_pol.T @ g_sp  # (A, p)
+        g_sa = g_sig[:a, :a] + g_sa_p @ self.p_pol  # (A, A)
+        g_m = g_m1 + g_ma[:d]
+        g_S = h + g_sa[:d, :d]
+        if saved_trig is not None:
+            g_sc = g_sa[:d, d:] + g_sa[d:, :d].T  # (D, 2K)
+            g_m_trig, g_S_trig = _sin_backward(self.trig_maps[0], saved_trig, g_ma[d:], g_sa[d:, d:], S.T @ g_sc)
+            g_m = g_m + g_m_trig
+            g_S = g_S + g_sc @ ct.T + g_S_trig
+        return (g_m, g_S, *g_policy)
+
+
+def _selection(indices: tuple[int, ...], size: int) -> torch.Tensor:
+    """``(len(indices), size)`` 0/1 matrix ``P`` with ``P @ v = v[indices]``."""
+    P = torch.zeros(len(indices), size, dtype=torch.float64)
+    P[torch.arange(len(indices)), torch.tensor(indices, dtype=torch.long)] = 1.0
+    return P
+
+
+class _StepFunction(torch.autograd.Function):
+    """:meth:`FusedStep.forward` / :meth:`FusedStep.backward` as one autograd node.
+
+    Inputs ``(m, S, step, slot, *step.policy.tensors)``; outputs ``(m', S')``.
+    """
+
+    @staticmethod
+    def forward(ctx, m, S, step: FusedStep, slot, *tensors):
+        (m1, S1), saved = step.forward(m, S, slot)
+        # plain attribute, not save_for_backward (no outputs are kept, so no reference cycle);
+        # the dynamics work buffer Q is saved to be version-checked against reuse of its slot
+        ctx.step, ctx.saved = step, saved
+        ctx.save_for_backward(saved[8][13])
+        return m1, S1
+
+    @staticmethod
+    @torch.autograd.function.once_differentiable
+    def backward(ctx, g_m1, g_S1):
+        ctx.saved_tensors  # raises if the work buffer was reused since the forward pass
+        S = ctx.saved[0]
+        g_m1 = S.new_zeros(S.shape[0]) if g_m1 is None else g_m1
+        g_S1 = torch.zeros_like(S) if g_S1 is None else g_S1
+        g_m, g_S, *g_policy = ctx.step.backward(ctx.saved, g_m1, g_S1, ctx.needs_input_grad[4:])
+        return g_m, g_S, None, None, *g_policy
 
 
 def rollout(
@@ -155,10 +293,15 @@ def rollout(
     if posterior.input_dim != expected:
         raise ValueError(f"the dynamics GP takes {posterior.input_dim} inputs; layout + controls give {expected}")
     policy_moments = controller.moment_map()
+    if isinstance(policy_moments, MomentStage) and not dynamics.has_grad:
+        fused = FusedStep(dynamics, policy_moments, layout, mean_only)
+        advance = lambda m, S, t: fused(m, S, t)  # noqa: E731
+    else:
+        advance = lambda m, S, t: propagate_step_autograd(m, S, dynamics, policy_moments, layout, mean_only, t)  # noqa: E731
     means, covs = [m0], [S0]
     m, S = m0, S0
     for t in range(horizon):
-        m, S = propagate_step(m, S, dynamics, policy_moments, layout, mean_only, slot=t)
+        m, S = advance(m, S, t)
         means.append(m)
         covs.append(S)
     return torch.stack(means), torch.stack(covs)
