@@ -34,12 +34,14 @@ Implementation notes (all float64, vectorised over outputs and basis points):
   ``(n, n, E, E, d)`` tensor is ever formed.
 * Only the ``E (E + 1) / 2`` output pairs ``a <= b`` are computed (``Q_ba = Q_ab^T``), the ``E``
   diagonal pairs first so that ``Q_aa`` is a view for the trace term.
-* The backward pass is hand-derived (:meth:`MomentMatchingGP._backward`; only ``Q`` and thin
+* The backward pass is hand-derived (:meth:`MomentMatchingGP._backward`; only thin
   ``(pairs, n, d)`` intermediates are kept) and tested equal to autograd through the same forward
   to 1e-11. Policy evaluation is dominated by the number of small operator calls, and autograd
   needs about three times as many.
-* The ``(pairs, n, n)`` buffers are reused across rollouts (:class:`_Workspace`): touching fresh
-  memory costs about as much as the arithmetic on it.
+* The backward pass recomputes ``Q`` (one product and one ``exp``) instead of keeping it: a
+  rollout then holds no ``(pairs, n, n)`` tensors (40 x 7.2 MB for the cart-pole at n = 300
+  before), and the ``(pairs, n, n)`` work is done in two reused buffers (:class:`_Workspace`):
+  touching fresh memory costs about as much as the arithmetic on it.
 """
 
 from __future__ import annotations
@@ -67,63 +69,73 @@ def _pair_indices(num_outputs: int) -> tuple[torch.Tensor, torch.Tensor, torch.T
 
 
 class _Workspace:
-    """Reusable ``(P, n, n)`` buffers for :class:`_ExpBilinearContraction`.
+    """Reusable scratch buffers (``Q (P, n, n)`` and a product ``(E, n, n)``) for the contraction.
 
     Fresh multi-megabyte tensors are expensive here (first-touch page faults cost about as much as
-    the arithmetic), so a rollout gives every step a *slot* whose ``Q`` buffer is kept and reused by
-    the next rollout, and the backward pass reuses one scratch buffer. Reuse is safe: ``Q`` is
-    saved with ``save_for_backward``, so a backward through an overwritten slot raises instead of
-    returning wrong gradients.
+    the arithmetic), so every prediction with one :class:`MomentMatchingGP` writes into the same
+    buffers. Nothing in them outlives a call: the backward pass recomputes ``Q``.
     """
 
     def __init__(self) -> None:
-        self.q: dict[int, torch.Tensor] = {}
-        self.scratch: torch.Tensor | None = None
+        self.buffers: dict[str, torch.Tensor] = {}
 
-    def q_buffer(self, slot: int | None, shape: tuple[int, ...], dtype: torch.dtype) -> torch.Tensor:
-        if slot is None:
-            return torch.empty(shape, dtype=dtype)
-        buf = self.q.get(slot)
+    def buffer(self, name: str, shape: tuple[int, ...], dtype: torch.dtype) -> torch.Tensor:
+        buf = self.buffers.get(name)
         if buf is None or buf.shape != shape or buf.dtype != dtype:
-            buf = self.q[slot] = torch.empty(shape, dtype=dtype)
+            buf = self.buffers[name] = torch.empty(shape, dtype=dtype)
         return buf
 
-    def scratch_buffer(self, shape: tuple[int, ...], dtype: torch.dtype) -> torch.Tensor:
-        if self.scratch is None or self.scratch.shape != shape or self.scratch.dtype != dtype:
-            self.scratch = torch.empty(shape, dtype=dtype)
-        return self.scratch
 
-
-def _contract_forward(left, right, w_left, w_right, inv_k, workspace: _Workspace, slot: int | None):
-    """``Q = exp(left @ right^T)`` (into a workspace buffer), ``quad``, ``trace``; returns them and ``Q w_right``."""
+def _exp_bilinear(left: torch.Tensor, right: torch.Tensor, workspace: _Workspace) -> torch.Tensor:
+    """``Q = exp(left @ right^T)`` ``(P, n, n)`` in the workspace's ``Q`` buffer (valid until the next call)."""
     p, n = left.shape[0], left.shape[1]
-    Q = workspace.q_buffer(slot, (p, n, n), left.dtype)
-    torch.bmm(left, right.mT, out=Q)
-    Q.exp_()
+    Q = torch.bmm(left, right.mT, out=workspace.buffer("Q", (p, n, n), left.dtype))
+    return Q.exp_()
+
+
+def _contract_forward(left, right, w_left, w_right, inv_k, workspace: _Workspace):
+    """``quad (P,)``, ``trace (E',)`` of :class:`_ExpBilinearContraction`, and ``Q w_right (P, n)``."""
+    Q = _exp_bilinear(left, right, workspace)
     q_wr = torch.bmm(Q, w_right[..., None]).squeeze(-1)  # (P, n)
     quad = (q_wr * w_left).sum(-1)
     e = inv_k.shape[0]
-    # sum_ij inv_k_ij Q_ij through the reused scratch buffer (a fresh product tensor is slow)
-    prod = torch.mul(inv_k, Q[:e], out=workspace.scratch_buffer((p, n, n), left.dtype)[:e])
+    # sum_ij inv_k_ij Q_ij through the reused product buffer (a fresh product tensor is slow)
+    prod = torch.mul(inv_k, Q[:e], out=workspace.buffer("prod", tuple(inv_k.shape), inv_k.dtype))
     trace = prod.sum((-2, -1))
-    return quad, trace, Q, q_wr
+    return quad, trace, q_wr
 
 
-def _contract_backward(left, right, w_left, w_right, inv_k, Q, q_wr, g_quad, g_trace, workspace: _Workspace, needs):
-    """Gradients of :func:`_contract_forward` wrt ``(left, right, w_left, w_right, inv_k)`` (``None`` where not needed)."""
-    e = inv_k.shape[0]
+def _contract_backward(left, right, w_left, w_right, inv_k, q_wr, g_quad, g_trace, workspace: _Workspace, needs):
+    """Gradients of :func:`_contract_forward` wrt ``(left, right, w_left, w_right, inv_k)`` (``None`` where not needed).
+
+    With ``a = g_quad w_left`` and ``H = Q[:E'] * inv_k``, the gradient wrt the exponent is
+    ``G = Q * (a w_right^T) + g_trace * H`` (on the first ``E'`` pairs), and it is only needed
+    through ``G @ right`` and ``G^T @ left``, which are formed without ``G``::
+
+        G @ right   = a * (Q @ (w_right * right)) + g_trace * (H @ right)
+        G^T @ left  = w_right * (Q^T @ (a * left)) + g_trace * (H^T @ left)
+
+    (``Q^T w_left``, for ``w_right``, rides along as an extra column of the second product).
+    ``Q`` is recomputed (one product and one ``exp``) instead of being stored by the forward pass.
+    """
+    Q = _exp_bilinear(left, right, workspace)
+    p, k = left.shape[0], left.shape[2]
+    e = inv_k.shape[0] if g_trace is not None else 0
     if g_quad is None:
-        g_quad = torch.zeros(Q.shape[0], dtype=Q.dtype)
-    G = workspace.scratch_buffer(tuple(Q.shape), Q.dtype)
-    torch.bmm((w_left * g_quad[:, None])[:, :, None], w_right[:, None, :], out=G)  # dL/dQ
-    if e > 0 and g_trace is not None:
-        G[:e].addcmul_(inv_k, g_trace[:, None, None])
-    G.mul_(Q)  # dL/d(exponent)
-    grad_left = torch.bmm(G, right) if needs[0] else None
-    grad_right = torch.bmm(left.mT, G).mT if needs[1] else None
+        g_quad = torch.zeros(p, dtype=Q.dtype)
+    a = w_left * g_quad[:, None]  # (P, n)
+    grad_left = a[..., None] * torch.bmm(Q, w_right[..., None] * right)  # (P, n, k)
+    q_t_left = torch.bmm(Q.mT, torch.cat([a[..., None] * left, w_left[..., None]], dim=-1))  # (P, n, k + 1)
+    grad_right = w_right[..., None] * q_t_left[..., :k]
+    grad_wr = g_quad[:, None] * q_t_left[..., k] if needs[3] else None
+    grad_inv = None
+    if e > 0:
+        H = torch.mul(Q[:e], inv_k, out=workspace.buffer("prod", tuple(inv_k.shape), inv_k.dtype))
+        g_tr = g_trace[:, None, None]
+        grad_left[:e] += g_tr * torch.bmm(H, right[:e])
+        grad_right[:e] += g_tr * torch.bmm(H.mT, left[:e])
+        grad_inv = g_tr * Q[:e] if needs[4] else None
     grad_wl = g_quad[:, None] * q_wr if needs[2] else None
-    grad_wr = g_quad[:, None] * torch.bmm(w_left[:, None, :], Q).squeeze(1) if needs[3] else None
-    grad_inv = g_trace[:, None, None] * Q[:e] if (needs[4] and g_trace is not None) else None
     return grad_left, grad_right, grad_wl, grad_wr, grad_inv
 
 
@@ -131,18 +143,18 @@ class _ExpBilinearContraction(torch.autograd.Function):
     """``Q_p = exp(left_p @ right_p^T)`` contracted, with a hand-written backward.
 
     Inputs: ``left, right (P, n, k)``, ``w_left, w_right (P, n)``, ``inv_k (E', n, n)`` symmetric
-    (``E' <= P``; ``E' = 0`` for no trace term), a :class:`_Workspace` and a slot (or ``None``).
+    (``E' <= P``; ``E' = 0`` for no trace term) and a :class:`_Workspace`.
     Outputs: ``quad (P,) = w_left_p^T Q_p w_right_p`` and
     ``trace (E',) = sum_ij inv_k_a,ij Q_a,ij`` (= ``tr(inv_k_a Q_a)`` for symmetric ``Q_a``).
 
-    Only ``Q`` (``P n^2``) is stored for the backward pass, which makes four passes over ``P n^2``
-    numbers (outer product, trace weight, times ``Q``, two thin products) in a reused buffer.
+    Nothing of size ``n^2`` is stored for the backward pass: it recomputes ``Q`` into the
+    workspace (see :func:`_contract_backward`).
     """
 
     @staticmethod
-    def forward(ctx, left, right, w_left, w_right, inv_k, workspace, slot):
-        quad, trace, Q, q_wr = _contract_forward(left, right, w_left, w_right, inv_k, workspace, slot)
-        ctx.save_for_backward(left, right, w_left, w_right, inv_k, Q, q_wr)
+    def forward(ctx, left, right, w_left, w_right, inv_k, workspace):
+        quad, trace, q_wr = _contract_forward(left, right, w_left, w_right, inv_k, workspace)
+        ctx.save_for_backward(left, right, w_left, w_right, inv_k, q_wr)
         ctx.workspace = workspace
         return quad, trace
 
@@ -151,7 +163,7 @@ class _ExpBilinearContraction(torch.autograd.Function):
     def backward(ctx, g_quad, g_trace):
         saved = ctx.saved_tensors
         grads = _contract_backward(*saved, g_quad, g_trace, ctx.workspace, ctx.needs_input_grad[:5])
-        return (*grads, None, None)
+        return (*grads, None)
 
 
 #: the posterior-derived tensors of :class:`MomentMatchingGP` that gradients may flow to
@@ -209,25 +221,23 @@ class MomentMatchingGP:
         self.has_grad = any(t.requires_grad for t in self.constants)
 
     def predict(
-        self, m: torch.Tensor, S: torch.Tensor, mean_only: bool = False, slot: int | None = None
+        self, m: torch.Tensor, S: torch.Tensor, mean_only: bool = False
     ) -> tuple[torch.Tensor, torch.Tensor, torch.Tensor]:
         """Moments of ``f(x)`` for ``x ~ N(m, S)``: ``M (E,)``, ``V (E, E)``, ``C (d, E)``.
 
-        See :func:`predict_uncertain` for the meaning of the arguments and results. ``slot``: an
-        integer (e.g. the time step of a rollout) to keep the ``(P, n, n)`` work buffer of this call
-        for reuse by the next call with the same slot (see :class:`_Workspace`); ``None`` allocates.
+        See :func:`predict_uncertain` for the meaning of the arguments and results.
         """
         if torch.is_grad_enabled() and (self.has_grad or m.requires_grad or S.requires_grad):
-            return _MomentsFunction.apply(m, S, self, mean_only, slot, *self.constants)
-        return self._forward(m, S, mean_only, slot, contract=_contract_forward)[0]
+            return _MomentsFunction.apply(m, S, self, mean_only, *self.constants)
+        return self._forward(m, S, mean_only, contract=_contract_forward)[0]
 
-    def forward(self, m: torch.Tensor, S: torch.Tensor, mean_only: bool = False, slot: int | None = None):
+    def forward(self, m: torch.Tensor, S: torch.Tensor, mean_only: bool = False):
         """:meth:`predict` without autograd, for callers with their own backward pass.
 
-        Returns ``((M, V, C), saved)``; ``saved`` is what :meth:`backward` needs (it holds the
-        ``(P, n, n)`` work buffer of ``slot``; do not reuse the slot before the backward pass).
+        Returns ``((M, V, C), saved)``; ``saved`` (thin ``(P, n, d + 2)`` intermediates, nothing of
+        size ``n^2``) is what :meth:`backward` needs.
         """
-        return self._forward(m, S, mean_only, slot, contract=_contract_forward)
+        return self._forward(m, S, mean_only, contract=_contract_forward)
 
     def backward(self, saved, gM: torch.Tensor, gV: torch.Tensor, gC: torch.Tensor, mean_only: bool, needs):
         """Gradients wrt ``(m, S, *self.constants)`` of a loss with gradients ``gM (E,)``,
@@ -235,7 +245,7 @@ class MomentMatchingGP:
         ``needs``: ``2 + len(self.constants)`` booleans; ``None`` is returned where ``False``."""
         return self._backward(saved, gM, gV, gC, mean_only, needs)
 
-    def _forward(self, m, S, mean_only, slot, contract):
+    def _forward(self, m, S, mean_only, contract):
         """The moment-matching arithmetic; ``contract=None`` uses the autograd Function for the
         exp-contraction (autograd reference path), otherwise the plain forward.
         Returns ``((M, V, C), intermediates for _backward)``."""
@@ -274,11 +284,11 @@ class MomentMatchingGP:
         right = torch.cat([Z[e + p :], self.ones, v[..., None]], dim=-1)  # (P, n, d + 2)
         inv_k = self.inv_k[:0] if mean_only else self.inv_k
         if contract is None:
-            quad, trace = _ExpBilinearContraction.apply(left, right, self.beta_a, self.beta_b, inv_k, self.workspace, slot)
+            quad, trace = _ExpBilinearContraction.apply(left, right, self.beta_a, self.beta_b, inv_k, self.workspace)
             saved = None
         else:
-            quad, trace, Q, q_wr = contract(left, right, self.beta_a, self.beta_b, inv_k, self.workspace, slot)
-            saved = (m, S, b_inv, half_i_minus_binv, W, Z, ZW, q, lb, lbt, left, right, inv_k, Q, q_wr, M)
+            quad, trace, q_wr = contract(left, right, self.beta_a, self.beta_b, inv_k, self.workspace)
+            saved = (m, S, b_inv, half_i_minus_binv, W, Z, ZW, q, lb, lbt, left, right, inv_k, q_wr, M)
         V = quad[self.full].reshape(e, e) - M[:, None] * M[None, :]
         if not mean_only:
             V = V + torch.diag(self.alpha2 - trace)
@@ -286,7 +296,7 @@ class MomentMatchingGP:
 
     def _backward(self, saved, gM, gV, gC, mean_only, needs):
         """Hand-derived gradients of ``(M, V, C)`` wrt ``(m, S, *constants)`` (``None`` where not needed)."""
-        m, S, b_inv, half_i_minus_binv, W, Z, ZW, q, lb, lbt, left, right, inv_k, Q, q_wr, M = saved
+        m, S, b_inv, half_i_minus_binv, W, Z, ZW, q, lb, lbt, left, right, inv_k, q_wr, M = saved
         e, p, d = self.num_outputs, self.num_pairs, self.input_dim
         need_c = dict(zip(_CONSTANTS, needs[2:]))
         # V = quad[full] - M M^T + diag(alpha2 - trace)
@@ -294,7 +304,7 @@ class MomentMatchingGP:
         g_trace = None if mean_only else -torch.diagonal(gV)
         gM = gM - (gV + gV.T) @ M
         grad_left, grad_right, g_beta_a, g_beta_b, g_inv_k = _contract_backward(
-            left, right, self.beta_a, self.beta_b, inv_k, Q, q_wr, g_quad, g_trace, self.workspace,
+            left, right, self.beta_a, self.beta_b, inv_k, q_wr, g_quad, g_trace, self.workspace,
             (True, True, need_c["beta_a"], need_c["beta_b"], need_c["inv_k"] and not mean_only),
         )
         # left = [2 Z_a T, u, 1], right = [Z_b, 1, v];  u = log_k[first] + zwz_a - hl_p,  v = log_k[second] + zwz_b
@@ -353,33 +363,31 @@ class MomentMatchingGP:
 class _MomentsFunction(torch.autograd.Function):
     """:meth:`MomentMatchingGP.predict` with the hand-derived backward pass.
 
-    Inputs ``(m, S, gp, mean_only, slot, *gp.constants)``; the constants are passed so that
+    Inputs ``(m, S, gp, mean_only, *gp.constants)``; the constants are passed so that
     autograd routes their gradients to the posterior's parameters (e.g. the RBF policy's).
     """
 
     @staticmethod
-    def forward(ctx, m, S, gp: MomentMatchingGP, mean_only: bool, slot, *constants):
-        (M, V, C), saved = gp._forward(m, S, mean_only, slot, contract=_contract_forward)
+    def forward(ctx, m, S, gp: MomentMatchingGP, mean_only: bool, *constants):
+        (M, V, C), saved = gp._forward(m, S, mean_only, contract=_contract_forward)
         # ``ctx.saved`` is a plain attribute (not save_for_backward): holding the output M itself
         # would make a reference cycle through the C++ graph that Python's GC cannot free (it
         # leaked ~17 MB per J+dJ at n = 80 and OOM-killed a cart-pole run); keep a detached alias.
         saved = (*saved[:-1], saved[-1].detach())
         ctx.gp, ctx.mean_only, ctx.saved = gp, mean_only, saved
-        ctx.save_for_backward(saved[13])  # Q: version-checked against work-buffer reuse
         return M, V, C
 
     @staticmethod
     @torch.autograd.function.once_differentiable
     def backward(ctx, gM, gV, gC):
-        ctx.saved_tensors  # raises if the work buffer was reused since the forward pass
         gp = ctx.gp
         e, dtype = gp.num_outputs, gp.beta.dtype
         gM = torch.zeros(e, dtype=dtype) if gM is None else gM
         gV = torch.zeros(e, e, dtype=dtype) if gV is None else gV
         gC = torch.zeros(gp.input_dim, e, dtype=dtype) if gC is None else gC
         needs = ctx.needs_input_grad
-        grads = gp._backward(ctx.saved, gM, gV, gC, ctx.mean_only, needs[:2] + needs[5:])
-        return grads[0], grads[1], None, None, None, *grads[2:]
+        grads = gp._backward(ctx.saved, gM, gV, gC, ctx.mean_only, needs[:2] + needs[4:])
+        return grads[0], grads[1], None, None, *grads[2:]
 
 
 def predict_uncertain(

@@ -103,22 +103,20 @@ def propagate_step(
     policy_moments: MomentMap,
     layout: StateLayout,
     mean_only: bool = False,
-    slot: int | None = None,
 ) -> tuple[torch.Tensor, torch.Tensor]:
     """``N(m, S)`` at time t -> ``(m', S')`` at t+1. ``m (D,)``, ``S (D, D)``.
 
     ``dynamics`` is ``MomentMatchingGP(posterior)``, ``policy_moments`` is
     ``controller.moment_map()`` (build both once per rollout); ``mean_only`` is passed to
-    :meth:`~plugins.pilco.moments.MomentMatchingGP.predict` (deterministic-GP-mean ablation),
-    ``slot`` too (work-buffer reuse across rollouts; the rollout passes the time step).
+    :meth:`~plugins.pilco.moments.MomentMatchingGP.predict` (deterministic-GP-mean ablation).
 
     With a :class:`~plugins.pilco.controllers.MomentStage` policy and a fixed dynamics model (no
     gradients wrt its posterior) the step is one autograd node with a hand-derived backward pass
     (:class:`FusedStep`); otherwise autograd goes through :func:`propagate_step_autograd`.
     """
     if isinstance(policy_moments, MomentStage) and not dynamics.has_grad:
-        return FusedStep(dynamics, policy_moments, layout, mean_only)(m, S, slot)
-    return propagate_step_autograd(m, S, dynamics, policy_moments, layout, mean_only, slot)
+        return FusedStep(dynamics, policy_moments, layout, mean_only)(m, S)
+    return propagate_step_autograd(m, S, dynamics, policy_moments, layout, mean_only)
 
 
 def propagate_step_autograd(
@@ -128,7 +126,6 @@ def propagate_step_autograd(
     policy_moments: MomentMap,
     layout: StateLayout,
     mean_only: bool = False,
-    slot: int | None = None,
 ) -> tuple[torch.Tensor, torch.Tensor]:
     """:func:`propagate_step` composed of differentiable pieces, differentiated by autograd
     (the reference for :class:`FusedStep`, and the path for dynamics models with gradients)."""
@@ -145,7 +142,7 @@ def propagate_step_autograd(
     s_in = torch.cat(
         [torch.cat([s_a_mod[mod], s_mod_u], dim=1), torch.cat([s_mod_u.T, su], dim=1)], dim=0
     )
-    md, vd, cd = dynamics.predict(m_in, s_in, mean_only=mean_only, slot=slot)
+    md, vd, cd = dynamics.predict(m_in, s_in, mean_only=mean_only)
     s_x_in = torch.cat([s_a_mod[:d], s_au[:d]], dim=1)  # (D, q + F) cov[x, GP input]
     s_xd = s_x_in @ cd  # (D, D) cov[x, Delta]
     s_next = S + vd + s_xd + s_xd.T
@@ -181,13 +178,13 @@ class FusedStep:
         self.trig_maps = _doubled(layout.angle_map) if layout.num_angles else None
         self.dyn_needs = (True, True) + (False,) * len(dynamics.constants)
 
-    def __call__(self, m: torch.Tensor, S: torch.Tensor, slot: int | None) -> tuple[torch.Tensor, torch.Tensor]:
+    def __call__(self, m: torch.Tensor, S: torch.Tensor) -> tuple[torch.Tensor, torch.Tensor]:
         tensors = self.policy.tensors
         if torch.is_grad_enabled() and (m.requires_grad or S.requires_grad or any(t.requires_grad for t in tensors)):
-            return _StepFunction.apply(m, S, self, slot, *tensors)
-        return self.forward(m, S, slot)[0]
+            return _StepFunction.apply(m, S, self, *tensors)
+        return self.forward(m, S)[0]
 
-    def forward(self, m, S, slot):
+    def forward(self, m, S):
         """``((m', S'), saved)`` without autograd."""
         d = self.layout.state_dim
         if self.trig_maps is None:
@@ -204,7 +201,7 @@ class FusedStep:
         mj = torch.cat([ma, mu])
         sig = torch.cat([torch.cat([sa, s_au], dim=1), torch.cat([s_au.T, su], dim=1)], dim=0)
         sig_in = sig @ self.p_in.T  # (A + F, q + F)
-        (md, vd, cd), saved_dyn = self.dynamics.forward(self.p_in @ mj, self.p_in @ sig_in, self.mean_only, slot)
+        (md, vd, cd), saved_dyn = self.dynamics.forward(self.p_in @ mj, self.p_in @ sig_in, self.mean_only)
         x_in = sig_in[:d]  # (D, q + F) cov[x, GP input]
         s_xd = x_in @ cd  # (D, D) cov[x, Delta]
         s_next = S + vd + s_xd + s_xd.T
@@ -247,27 +244,24 @@ def _selection(indices: tuple[int, ...], size: int) -> torch.Tensor:
 class _StepFunction(torch.autograd.Function):
     """:meth:`FusedStep.forward` / :meth:`FusedStep.backward` as one autograd node.
 
-    Inputs ``(m, S, step, slot, *step.policy.tensors)``; outputs ``(m', S')``.
+    Inputs ``(m, S, step, *step.policy.tensors)``; outputs ``(m', S')``.
     """
 
     @staticmethod
-    def forward(ctx, m, S, step: FusedStep, slot, *tensors):
-        (m1, S1), saved = step.forward(m, S, slot)
-        # plain attribute, not save_for_backward (no outputs are kept, so no reference cycle);
-        # the dynamics work buffer Q is saved to be version-checked against reuse of its slot
+    def forward(ctx, m, S, step: FusedStep, *tensors):
+        (m1, S1), saved = step.forward(m, S)
+        # a plain attribute, not save_for_backward: no outputs are kept, so no reference cycle
         ctx.step, ctx.saved = step, saved
-        ctx.save_for_backward(saved[8][13])
         return m1, S1
 
     @staticmethod
     @torch.autograd.function.once_differentiable
     def backward(ctx, g_m1, g_S1):
-        ctx.saved_tensors  # raises if the work buffer was reused since the forward pass
         S = ctx.saved[0]
         g_m1 = S.new_zeros(S.shape[0]) if g_m1 is None else g_m1
         g_S1 = torch.zeros_like(S) if g_S1 is None else g_S1
-        g_m, g_S, *g_policy = ctx.step.backward(ctx.saved, g_m1, g_S1, ctx.needs_input_grad[4:])
-        return g_m, g_S, None, None, *g_policy
+        g_m, g_S, *g_policy = ctx.step.backward(ctx.saved, g_m1, g_S1, ctx.needs_input_grad[3:])
+        return g_m, g_S, None, *g_policy
 
 
 def rollout(
@@ -294,14 +288,13 @@ def rollout(
         raise ValueError(f"the dynamics GP takes {posterior.input_dim} inputs; layout + controls give {expected}")
     policy_moments = controller.moment_map()
     if isinstance(policy_moments, MomentStage) and not dynamics.has_grad:
-        fused = FusedStep(dynamics, policy_moments, layout, mean_only)
-        advance = lambda m, S, t: fused(m, S, t)  # noqa: E731
+        advance = FusedStep(dynamics, policy_moments, layout, mean_only)
     else:
-        advance = lambda m, S, t: propagate_step_autograd(m, S, dynamics, policy_moments, layout, mean_only, t)  # noqa: E731
+        advance = lambda m, S: propagate_step_autograd(m, S, dynamics, policy_moments, layout, mean_only)  # noqa: E731
     means, covs = [m0], [S0]
     m, S = m0, S0
-    for t in range(horizon):
-        m, S = advance(m, S, t)
+    for _ in range(horizon):
+        m, S = advance(m, S)
         means.append(m)
         covs.append(S)
     return torch.stack(means), torch.stack(covs)

@@ -25,17 +25,17 @@ from tests.pilco.random_gp import DT, random_posterior
 torch.set_num_threads(1)
 
 
-def _plain_contract(left, right, w_left, w_right, inv_k, workspace, slot):
+def _plain_contract(left, right, w_left, w_right, inv_k, workspace):
     """``Q = exp(left right^T)`` and its contractions, plain autograd (no custom Function)."""
     Q = torch.exp(left @ right.mT)
     q_wr = (Q @ w_right[..., None]).squeeze(-1)
     quad = (q_wr * w_left).sum(-1)
     trace = (inv_k * Q[: inv_k.shape[0]]).sum((-2, -1))
-    return quad, trace, Q, q_wr
+    return quad, trace, q_wr
 
 
 def _gp_moments(posterior, m, S, mean_only):
-    return MomentMatchingGP(posterior)._forward(m, S, mean_only, None, _plain_contract)[0]
+    return MomentMatchingGP(posterior)._forward(m, S, mean_only, _plain_contract)[0]
 
 
 def _policy_moments(ctrl, m, S):
@@ -145,7 +145,7 @@ def test_fused_step_without_gradients_matches() -> None:
     """The no-autograd forward gives the same states as the graph-recording one."""
     obj = _objective("rbf")
     step = FusedStep(obj.dynamics, obj.controller.moment_map(), obj.layout, False)
-    m1, S1 = step(obj.init_mean, obj.init_cov, None)
+    m1, S1 = step(obj.init_mean, obj.init_cov)
     with torch.no_grad():
-        m2, S2 = step(obj.init_mean, obj.init_cov, None)
+        m2, S2 = step(obj.init_mean, obj.init_cov)
     assert m1.grad_fn is not None and torch.equal(m1.detach(), m2) and torch.equal(S1.detach(), S2)
