@@ -82,7 +82,8 @@ class _Workspace:
     def buffer(self, name: str, shape: tuple[int, ...], dtype: torch.dtype) -> torch.Tensor:
         buf = self.buffers.get(name)
         if buf is None or buf.shape != shape or buf.dtype != dtype:
-            buf = self.buffers[name] = torch.empty(shape, dtype=dtype)
+            with torch.inference_mode(False):  # an ordinary tensor, usable in and out of inference mode
+                buf = self.buffers[name] = torch.empty(shape, dtype=dtype)
         return buf
 
 
@@ -167,7 +168,7 @@ class _ExpBilinearContraction(torch.autograd.Function):
 
 
 #: the posterior-derived tensors of :class:`MomentMatchingGP` that gradients may flow to
-_CONSTANTS = ("X_z", "scale_z", "scale_outer", "inv_dd", "log_alpha2", "alpha2", "beta", "beta_a", "beta_b", "inv_k")
+_CONSTANTS = ("X_z", "scale_z", "scale_outer", "w_coef", "log_alpha2", "alpha2", "beta", "beta_a", "beta_b", "inv_k")
 
 
 class MomentMatchingGP:
@@ -188,7 +189,9 @@ class MomentMatchingGP:
         Z[E:E+P]     = Lambda_a^-1 nu_i   (pair (a, b): left factor of Q)
         Z[E+P:]      = Lambda_b^-1 nu_j   (pair (a, b): right factor of Q)
 
-    so that their quadratic forms are one batched product with ``W = [B_a^-1; T; T]``.
+    so that their quadratic forms are one batched product with ``W = [B_a^-1; T; T]``
+    (``(G, d, d)``), formed from the batched ``B^-1`` as ``W = (w_offset - B^-1[w_index]) * w_coef``
+    (``T = (I - B_ab^-1) * inv_dd / 2``: ``I - B^-1`` first, which is exact where it cancels).
     """
 
     def __init__(self, posterior: GPPosterior) -> None:
@@ -199,23 +202,28 @@ class MomentMatchingGP:
         self.num_pairs = p = first.shape[0]
         X = posterior.inputs
         self.input_dim = d = X.shape[1]
+        dtype = beta.dtype
         inv_ell = torch.exp(-posterior.log_ell)  # (E, d)
         inv_lam = inv_ell * inv_ell  # (E, d) diagonal of Lambda_a^-1
         self.log_alpha2 = 2.0 * posterior.log_alpha  # (E,)
         self.alpha2 = torch.exp(self.log_alpha2)
-        self.scale_z = torch.cat([inv_ell, inv_lam[first], inv_lam[second]], dim=0)  # (G, d)
-        self.X_z = X * self.scale_z[:, None, :]  # (G, n, d)
+        self.scale_z = torch.cat([inv_ell, inv_lam[first], inv_lam[second]], dim=0)[:, None, :]  # (G, 1, d)
+        self.X_z = X * self.scale_z  # (G, n, d)
         dh = torch.sqrt(inv_lam[first] + inv_lam[second])  # (P, d)
-        self.inv_dd = 1.0 / (dh[:, :, None] * dh[:, None, :])  # (P, d, d)
+        half_inv_dd = 0.5 / (dh[:, :, None] * dh[:, None, :])  # (P, d, d)
         scale = torch.cat([inv_ell, dh], dim=0)  # (E + P, d)
         self.scale_outer = scale[:, :, None] * scale[:, None, :]  # (E + P, d, d)
+        self.eye = torch.eye(d, dtype=dtype)
+        # W = (w_offset - B^-1[w_index]) * w_coef:  [B_a^-1 (E); T (P); T (P)]
+        self.w_index = torch.cat([torch.arange(e), torch.arange(e, e + p), torch.arange(e, e + p)])
+        self.w_coef = torch.cat([-torch.ones(e, d, d, dtype=dtype), half_inv_dd, half_inv_dd])
+        self.w_offset = torch.cat([torch.zeros(e, d, d, dtype=dtype), self.eye.expand(2 * p, d, d)])
         self.first, self.second = first, second
         self.pair_outputs = torch.cat([first, second])  # (2P,) output of each pair group of Z
         self.beta = beta
         self.beta_a, self.beta_b = beta[first], beta[second]
         self.inv_k = posterior.inv_k.contiguous()
-        self.eye = torch.eye(d, dtype=beta.dtype)
-        self.ones = torch.ones(p, X.shape[0], 1, dtype=beta.dtype)
+        self.ones = torch.ones(p, X.shape[0], 1, dtype=dtype)
         self.workspace = _Workspace()
         self.constants = tuple(getattr(self, name) for name in _CONSTANTS)
         self.has_grad = any(t.requires_grad for t in self.constants)
@@ -253,89 +261,84 @@ class MomentMatchingGP:
 
         # One batched Cholesky for B_a = iL_a S iL_a + I (mean, cross-cov; E of them) and for
         # B_ab = D S D + I, D^2 = Lambda_a^-1 + Lambda_b^-1 (Q; P of them).
-        chol = torch.linalg.cholesky(self.scale_outer * S + self.eye)
+        chol = torch.linalg.cholesky(torch.addcmul(self.eye, self.scale_outer, S))
         b_inv = torch.cholesky_inverse(chol)  # (E + P, d, d)
-        half_logdet = torch.log(torch.diagonal(chol, dim1=-2, dim2=-1)).sum(-1)  # (E + P,)
-        # T = R^-1 S / 2 = D^-1 (I - B^-1) D^-1 / 2 with R = S (Lambda_a^-1 + Lambda_b^-1) + I
-        half_i_minus_binv = 0.5 * (self.eye - b_inv[e:])
-        T = half_i_minus_binv * self.inv_dd  # (P, d, d)
-        W = torch.cat([b_inv[:e], T, T], dim=0)  # (G, d, d)
+        half_logdet = chol.diagonal(dim1=-2, dim2=-1).log().sum(-1)  # (E + P,)
+        # W = [B_a^-1; T; T],  T = R^-1 S / 2 = D^-1 (I - B^-1) D^-1 / 2,  R = S (Lambda_a^-1 + Lambda_b^-1) + I
+        W = (self.w_offset - b_inv[self.w_index]) * self.w_coef  # (G, d, d)
 
-        Z = self.X_z - m * self.scale_z[:, None, :]  # (G, n, d), see the class docstring
+        Z = torch.addcmul(self.X_z, self.scale_z, m, value=-1.0)  # (G, n, d), see the class docstring
         ZW = torch.bmm(Z, W)  # (G, n, d): [B_a^-1 iL_a nu_i, Lambda_a^-1 nu_i T, Lambda_b^-1 nu_j T]
         zwz = (Z * ZW).sum(-1)  # (G, n)
         nu_s, t = Z[:e], ZW[:e]
 
         # ---- mean and cross-covariance --------------------------------------------------------
-        log_q = (self.log_alpha2 - half_logdet[:e])[:, None] - 0.5 * zwz[:e]  # (E, n)
-        q = torch.exp(log_q)
+        q = torch.add((self.log_alpha2 - half_logdet[:e])[:, None], zwz[:e], alpha=-0.5).exp_()  # (E, n)
         lb = q * self.beta  # (E, n)  beta_ai q_ai
         M = lb.sum(-1)
         # S^-1 cov[x, f_a] = sum_i beta_ai q_ai (S + Lambda_a)^-1 nu_i,  (S + Lambda_a)^-1 nu_i = iL_a t_ai
-        lbt = torch.bmm(lb[:, None, :], t).squeeze(1)  # (E, d)
-        C = (lbt * self.scale_z[:e]).T  # (d, E)
+        lbt = torch.bmm(lb[:, None, :], t)  # (E, 1, d)
+        C = (lbt * self.scale_z[:e]).squeeze(1).T  # (d, E)
 
         # ---- second moments: Q for the pairs a <= b -------------------------------------------
-        log_k = self.log_alpha2[:, None] - 0.5 * (nu_s * nu_s).sum(-1)  # (E, n)  log k_a(X_i, m)
-        u = log_k[self.first] + zwz[e : e + p] - half_logdet[e:, None]  # (P, n)
-        v = log_k[self.second] + zwz[e + p :]  # (P, n)
+        log_k = torch.add(self.log_alpha2[:, None], (nu_s * nu_s).sum(-1), alpha=-0.5)  # (E, n)  log k_a(X_i, m)
+        # [u; v] with u = log_k[first] + zwz_a - 1/2 log|B_ab|,  v = log_k[second] + zwz_b  (2P, n)
+        uv = log_k[self.pair_outputs] + zwz[e:]
+        u = uv[:p] - half_logdet[e:, None]
         # exponent_ij = 2 a_i^T T b_j + u_i + v_j = log Q_ij  (expanded bilinear form, one product)
         left = torch.cat([2.0 * ZW[e : e + p], u[..., None], self.ones], dim=-1)  # (P, n, d + 2)
-        right = torch.cat([Z[e + p :], self.ones, v[..., None]], dim=-1)  # (P, n, d + 2)
+        right = torch.cat([Z[e + p :], self.ones, uv[p:, :, None]], dim=-1)  # (P, n, d + 2)
         inv_k = self.inv_k[:0] if mean_only else self.inv_k
         if contract is None:
             quad, trace = _ExpBilinearContraction.apply(left, right, self.beta_a, self.beta_b, inv_k, self.workspace)
             saved = None
         else:
             quad, trace, q_wr = contract(left, right, self.beta_a, self.beta_b, inv_k, self.workspace)
-            saved = (m, S, b_inv, half_i_minus_binv, W, Z, ZW, q, lb, lbt, left, right, inv_k, q_wr, M)
-        V = quad[self.full].reshape(e, e) - M[:, None] * M[None, :]
+            saved = (m, S, b_inv, W, Z, ZW, q, lb, lbt, left, right, inv_k, q_wr, M)
+        V = quad[self.full].view(e, e) - torch.outer(M, M)
         if not mean_only:
-            V = V + torch.diag(self.alpha2 - trace)
+            V.diagonal().add_(self.alpha2 - trace)
         return (M, V, C), saved
 
     def _backward(self, saved, gM, gV, gC, mean_only, needs):
         """Hand-derived gradients of ``(M, V, C)`` wrt ``(m, S, *constants)`` (``None`` where not needed)."""
-        m, S, b_inv, half_i_minus_binv, W, Z, ZW, q, lb, lbt, left, right, inv_k, q_wr, M = saved
+        m, S, b_inv, W, Z, ZW, q, lb, lbt, left, right, inv_k, q_wr, M = saved
         e, p, d = self.num_outputs, self.num_pairs, self.input_dim
         need_c = dict(zip(_CONSTANTS, needs[2:]))
         # V = quad[full] - M M^T + diag(alpha2 - trace)
         g_quad = torch.zeros(p, dtype=gV.dtype).index_add_(0, self.full, gV.reshape(-1))
-        g_trace = None if mean_only else -torch.diagonal(gV)
+        g_trace = None if mean_only else -gV.diagonal()
         gM = gM - (gV + gV.T) @ M
         grad_left, grad_right, g_beta_a, g_beta_b, g_inv_k = _contract_backward(
             left, right, self.beta_a, self.beta_b, inv_k, q_wr, g_quad, g_trace, self.workspace,
             (True, True, need_c["beta_a"], need_c["beta_b"], need_c["inv_k"] and not mean_only),
         )
-        # left = [2 Z_a T, u, 1], right = [Z_b, 1, v];  u = log_k[first] + zwz_a - hl_p,  v = log_k[second] + zwz_b
+        # left = [2 Z_a T, u, 1], right = [Z_b, 1, v];  [u; v] = log_k[pair_outputs] + zwz[E:] - [hl_p; 0]
         g_uv = torch.cat([grad_left[..., d], grad_right[..., d + 1]], dim=0)  # (2P, n)
         g_logk = torch.zeros(e, g_uv.shape[1], dtype=g_uv.dtype).index_add_(0, self.pair_outputs, g_uv)
         # mean part: C = (lbt * iL)^T, lbt_a = lb_a @ t_a,  M = sum lb,  lb = q beta
-        w = gC.T * self.scale_z[:e]  # (E, d)  dL/dlbt
-        g_lb = gM[:, None] + torch.bmm(ZW[:e], w[:, :, None]).squeeze(-1)  # (E, n)
+        w = gC.T * self.scale_z[:e, 0]  # (E, d)  dL/dlbt
+        g_lb = torch.baddbmm(gM[:, None, None], ZW[:e], w[:, :, None]).squeeze(-1)  # (E, n)
         g_logq = g_lb * lb
-        # gradients wrt zwz = sum(Z * ZW), wrt ZW where it is used directly, and wrt Z where it is
-        # used directly (log_k = la2 - 1/2 |Z_mean|^2; right = [Z_b, ...])
+        # gradients wrt zwz = sum(Z * ZW) and wrt ZW where it is used directly (lbt, left)
         g_zwz = torch.cat([-0.5 * g_logq, g_uv], dim=0)  # (G, n)
         g_ZW = torch.cat([lb[..., None] * w[:, None, :], 2.0 * grad_left[..., :d]], dim=0)  # (E + P, n, d)
-        g_Z_direct = torch.cat([-g_logk[..., None] * Z[:e], grad_right[..., :d]], dim=0)  # rows [:E] and [E+P:]
-        # ZW = Z W with W symmetric:  dZ = 2 g_zwz ZW + g_ZW W,  dW = Z^T (g_ZW + g_zwz Z)
-        g_Z = 2.0 * g_zwz[..., None] * ZW
-        g_Z[: e + p].add_(torch.bmm(g_ZW, W[: e + p]))
-        g_Z[:e].add_(g_Z_direct[:e])
-        g_Z[e + p :].add_(g_Z_direct[e:])
+        # ZW = Z W with W symmetric:  dZ = 2 g_zwz ZW + g_ZW W (+ direct uses),  dW = Z^T (g_ZW + g_zwz Z)
+        g_Z = (2.0 * g_zwz)[..., None] * ZW
+        g_Z[: e + p].baddbmm_(g_ZW, W[: e + p])
+        g_Z[:e].addcmul_(g_logk[..., None], Z[:e], value=-1.0)  # log_k = la2 - 1/2 |Z_mean|^2
+        g_Z[e + p :].add_(grad_right[..., :d])  # right = [Z_b, ...]
         g_W = torch.bmm(Z.mT, g_zwz[..., None] * Z)  # (G, d, d)
-        g_W[: e + p].add_(torch.bmm(Z[: e + p].mT, g_ZW))
-        g_T = g_W[e : e + p] + g_W[e + p :]  # (P, d, d): T is used twice in W
-        g_hl = torch.cat([-g_logq.sum(-1), -g_uv[:p].sum(-1)])  # (E + P,)  d/d(1/2 log|B|)
-        grads = {}
-        g_Z_sum = g_Z.sum(1)  # (G, d);  Z = X_z - m scale_z
+        g_W[: e + p].baddbmm_(Z[: e + p].mT, g_ZW)
+        g_hl = -torch.cat([g_logq, g_uv[:p]], dim=0).sum(-1)  # (E + P,)  d/d(1/2 log|B|)
+        g_Z_sum = g_Z.sum(1, keepdim=True)  # (G, 1, d);  Z = X_z - m scale_z
+        grads = {"X_z": g_Z}
         if needs[0]:
-            grads["m"] = -(g_Z_sum * self.scale_z).sum(0)
+            grads["m"] = -(g_Z_sum * self.scale_z).sum((0, 1))
         if needs[1] or need_c["scale_outer"]:
-            g_binv = torch.cat([g_W[:e], -0.5 * g_T * self.inv_dd], dim=0)  # T = 1/2 (I - B^-1) inv_dd
-            # B^-1 and 1/2 log|B| of B = scale_outer * S + I
-            g_B = 0.5 * g_hl[:, None, None] * b_inv - b_inv @ g_binv @ b_inv
+            # W = (w_offset - B^-1[w_index]) * w_coef;  B^-1 and 1/2 log|B| of B = scale_outer * S + I
+            g_binv = torch.zeros_like(b_inv).index_add_(0, self.w_index, g_W * self.w_coef, alpha=-1.0)
+            g_B = torch.baddbmm(0.5 * g_hl[:, None, None] * b_inv, b_inv @ g_binv, b_inv, alpha=-1.0)
             if needs[1]:
                 g_S = (g_B * self.scale_outer).sum(0)
                 # S enters through a Cholesky factorisation, which reads it as symmetric: return the
@@ -343,16 +346,15 @@ class MomentMatchingGP:
                 grads["S"] = 0.5 * (g_S + g_S.T)
             if need_c["scale_outer"]:
                 grads["scale_outer"] = g_B * S
-        grads["X_z"] = g_Z
         if need_c["scale_z"]:
             g_scale = -m * g_Z_sum
-            g_scale[:e].add_(gC.T * lbt)
+            g_scale[:e].add_(gC.T[:, None, :] * lbt)
             grads["scale_z"] = g_scale
-        if need_c["inv_dd"]:
-            grads["inv_dd"] = g_T * half_i_minus_binv
+        if need_c["w_coef"]:
+            grads["w_coef"] = g_W * (self.w_offset - b_inv[self.w_index])
         grads["log_alpha2"] = g_logq.sum(-1) + g_logk.sum(-1)
         if need_c["alpha2"] and not mean_only:
-            grads["alpha2"] = torch.diagonal(gV).clone()
+            grads["alpha2"] = gV.diagonal().clone()
         grads["beta"] = g_lb * q
         grads["beta_a"], grads["beta_b"], grads["inv_k"] = g_beta_a, g_beta_b, g_inv_k
         out = [grads.get("m"), grads.get("S")]

@@ -150,7 +150,8 @@ def propagate_step_autograd(
 
 
 class FusedStep:
-    """One time step (:func:`propagate_step`) as a forward/backward pair: one autograd node per step.
+    """One time step (:func:`propagate_step`) as a forward/backward pair; a rollout of them is one
+    autograd node (:meth:`rollout`).
 
     The stages and their intermediates, for ``A = D + 2K`` augmented entries, ``p`` policy inputs,
     ``F`` controls and ``q`` model inputs (selections are exact 0/1 matrices)::
@@ -179,12 +180,45 @@ class FusedStep:
         self.dyn_needs = (True, True) + (False,) * len(dynamics.constants)
 
     def __call__(self, m: torch.Tensor, S: torch.Tensor) -> tuple[torch.Tensor, torch.Tensor]:
+        """One step: ``(m', S')``."""
+        means, covs = self.rollout(m, S, 1)
+        return means[1], covs[1]
+
+    def rollout(self, m0: torch.Tensor, S0: torch.Tensor, horizon: int) -> tuple[torch.Tensor, torch.Tensor]:
+        """``horizon`` steps from ``N(m0, S0)``: means ``(H+1, D)``, covariances ``(H+1, D, D)``
+        (differentiable wrt ``m0``, ``S0`` and the policy: one autograd node, :class:`_RolloutFunction`)."""
         tensors = self.policy.tensors
-        if torch.is_grad_enabled() and (m.requires_grad or S.requires_grad or any(t.requires_grad for t in tensors)):
-            return _StepFunction.apply(m, S, self, *tensors)
+        if torch.is_grad_enabled() and (m0.requires_grad or S0.requires_grad or any(t.requires_grad for t in tensors)):
+            return _RolloutFunction.apply(m0, S0, self, horizon, *tensors)
         with torch.inference_mode():
-            m1, S1 = self.forward(m, S)[0]
-        return m1.clone(), S1.clone()  # ordinary tensors for the caller
+            means, covs, _ = self.run(m0, S0, horizon)
+        return means.clone(), covs.clone()  # ordinary tensors for the caller
+
+    def run(self, m0, S0, horizon):
+        """:meth:`forward` ``horizon`` times: ``(means (H+1, D), covs (H+1, D, D), [saved per step])``."""
+        means, covs, saved = [m0], [S0], []
+        m, S = m0, S0
+        for _ in range(horizon):
+            (m, S), saved_step = self.forward(m, S)
+            means.append(m)
+            covs.append(S)
+            saved.append(saved_step)
+        return torch.stack(means), torch.stack(covs), saved
+
+    def run_backward(self, saved, g_means, g_covs, needs):
+        """Gradients wrt ``(m0, S0, *policy.tensors)`` given those wrt the results of :meth:`run`
+        (``None`` for zero); the policy tensors' gradients are summed over the steps."""
+        S0 = saved[0][0]
+        horizon, d = len(saved), S0.shape[0]
+        g_means = S0.new_zeros(horizon + 1, d) if g_means is None else g_means
+        g_covs = S0.new_zeros(horizon + 1, d, d) if g_covs is None else g_covs
+        g_m, g_S = g_means[horizon], g_covs[horizon]
+        totals = [None] * len(needs)
+        for t in reversed(range(horizon)):
+            g_m, g_S, *g_policy = self.backward(saved[t], g_m, g_S, needs)
+            g_m, g_S = g_m + g_means[t], g_S + g_covs[t]
+            totals = [g if total is None else (total if g is None else total + g) for total, g in zip(totals, g_policy)]
+        return (g_m, g_S, *totals)
 
     def forward(self, m, S):
         """``((m', S'), saved)`` without autograd."""
@@ -243,33 +277,30 @@ def _selection(indices: tuple[int, ...], size: int) -> torch.Tensor:
     return P
 
 
-class _StepFunction(torch.autograd.Function):
-    """:meth:`FusedStep.forward` / :meth:`FusedStep.backward` as one autograd node.
+class _RolloutFunction(torch.autograd.Function):
+    """:meth:`FusedStep.run` and :meth:`FusedStep.run_backward` as one autograd node per rollout.
 
-    Inputs ``(m, S, step, *step.policy.tensors)``; outputs ``(m', S')``.
-
-    Both passes run in ``torch.inference_mode`` (about 15 % less per-operator overhead than
-    ``no_grad``); what leaves them is cloned into ordinary tensors for autograd.
+    Inputs ``(m0, S0, step, horizon, *step.policy.tensors)``; outputs ``means (H+1, D)``,
+    ``covs (H+1, D, D)``. Both passes run in ``torch.inference_mode`` (about 15 % less
+    per-operator overhead than ``no_grad``); what leaves them is cloned into ordinary tensors.
     """
 
     @staticmethod
-    def forward(ctx, m, S, step: FusedStep, *tensors):
+    def forward(ctx, m0, S0, step: FusedStep, horizon: int, *tensors):
         with torch.inference_mode():
-            (m1, S1), saved = step.forward(m, S)
+            means, covs, saved = step.run(m0, S0, horizon)
         # a plain attribute, not save_for_backward: no outputs are kept, so no reference cycle
         ctx.step, ctx.saved = step, saved
-        return m1.clone(), S1.clone()
+        return means.clone(), covs.clone()
 
     @staticmethod
     @torch.autograd.function.once_differentiable
-    def backward(ctx, g_m1, g_S1):
-        S = ctx.saved[0]
-        g_m1 = S.new_zeros(S.shape[0]) if g_m1 is None else g_m1
-        g_S1 = torch.zeros_like(S) if g_S1 is None else g_S1
+    def backward(ctx, g_means, g_covs):
+        needs = ctx.needs_input_grad
         with torch.inference_mode():
-            grads = ctx.step.backward(ctx.saved, g_m1, g_S1, ctx.needs_input_grad[3:])
-        g_m, g_S, *g_policy = (None if g is None else g.clone() for g in grads)
-        return g_m, g_S, None, *g_policy
+            grads = ctx.step.run_backward(ctx.saved, g_means, g_covs, needs[4:])
+        g_m0, g_S0, *g_tensors = (None if g is None else g.clone() for g in grads)
+        return g_m0 if needs[0] else None, g_S0 if needs[1] else None, None, None, *g_tensors
 
 
 def rollout(
@@ -296,13 +327,11 @@ def rollout(
         raise ValueError(f"the dynamics GP takes {posterior.input_dim} inputs; layout + controls give {expected}")
     policy_moments = controller.moment_map()
     if isinstance(policy_moments, MomentStage) and not dynamics.has_grad:
-        advance = FusedStep(dynamics, policy_moments, layout, mean_only)
-    else:
-        advance = lambda m, S: propagate_step_autograd(m, S, dynamics, policy_moments, layout, mean_only)  # noqa: E731
+        return FusedStep(dynamics, policy_moments, layout, mean_only).rollout(m0, S0, horizon)
     means, covs = [m0], [S0]
     m, S = m0, S0
     for _ in range(horizon):
-        m, S = advance(m, S)
+        m, S = propagate_step_autograd(m, S, dynamics, policy_moments, layout, mean_only)
         means.append(m)
         covs.append(S)
     return torch.stack(means), torch.stack(covs)
