@@ -176,6 +176,7 @@ class FusedStep:
         a, f = layout.augmented_dim, dynamics.input_dim - layout.model_input_dim
         self.p_pol = _selection(layout.policy_inputs, a)  # (p, A)
         self.p_in = _selection(layout.model_inputs + tuple(range(a, a + f)), a + f)  # (q + F, A + F)
+        self.p_pol_t, self.p_in_t = self.p_pol.T.contiguous(), self.p_in.T.contiguous()
         self.trig_maps = _doubled(layout.angle_map) if layout.num_angles else None
         self.dyn_needs = (True, True) + (False,) * len(dynamics.constants)
 
@@ -231,12 +232,12 @@ class FusedStep:
             ma = torch.cat([m, mt])
             sa = torch.cat([torch.cat([S, sc], dim=1), torch.cat([sc.T, vt], dim=1)], dim=0)
         a = ma.shape[0]
-        sa_p = sa @ self.p_pol.T  # (A, p)
+        sa_p = sa @ self.p_pol_t  # (A, p)
         (mu, su, cu), saved_pol = self.policy.forward(self.p_pol @ ma, self.p_pol @ sa_p)
         s_au = sa_p @ cu  # (A, F) cov[a, u]
         mj = torch.cat([ma, mu])
         sig = torch.cat([torch.cat([sa, s_au], dim=1), torch.cat([s_au.T, su], dim=1)], dim=0)
-        sig_in = sig @ self.p_in.T  # (A + F, q + F)
+        sig_in = sig @ self.p_in_t  # (A + F, q + F)
         (md, vd, cd), saved_dyn = self.dynamics.forward(self.p_in @ mj, self.p_in @ sig_in, self.mean_only)
         x_in = sig_in[:d]  # (D, q + F) cov[x, GP input]
         s_xd = x_in @ cd  # (D, D) cov[x, Delta]
@@ -249,16 +250,16 @@ class FusedStep:
         S, ct, saved_trig, sa_p, cu, saved_pol, x_in, cd, saved_dyn, a = saved
         d = self.layout.state_dim
         h = 0.5 * (g_S1 + g_S1.T)  # through the symmetrisation
-        g_sxd = h + h.T
+        g_sxd = 2.0 * h  # h + h^T, h symmetric
         g_m_in, g_s_in = self.dynamics.backward(saved_dyn, g_m1, h, x_in.T @ g_sxd, self.mean_only, self.dyn_needs)[:2]
-        g_mj = self.p_in.T @ g_m_in  # (A + F,)
-        g_sig_in = self.p_in.T @ g_s_in  # (A + F, q + F)
+        g_mj = self.p_in_t @ g_m_in  # (A + F,)
+        g_sig_in = self.p_in_t @ g_s_in  # (A + F, q + F)
         g_sig_in[:d] += g_sxd @ cd.T
         g_sig = g_sig_in @ self.p_in  # (A + F, A + F)
         g_sau = g_sig[:a, a:] + g_sig[a:, :a].T  # (A, F)
         g_mp, g_sp, *g_policy = self.policy.backward(saved_pol, g_mj[a:], g_sig[a:, a:], sa_p.T @ g_sau, needs)
-        g_ma = g_mj[:a] + self.p_pol.T @ g_mp
-        g_sa_p = g_sau @ cu.T + self.p_pol.T @ g_sp  # (A, p)
+        g_ma = g_mj[:a] + self.p_pol_t @ g_mp
+        g_sa_p = g_sau @ cu.T + self.p_pol_t @ g_sp  # (A, p)
         g_sa = g_sig[:a, :a] + g_sa_p @ self.p_pol  # (A, A)
         g_m = g_m1 + g_ma[:d]
         g_S = h + g_sa[:d, :d]
