@@ -11,6 +11,13 @@ One step maps ``p(x_t) = N(m, S)`` (``x (D,)``) to a Gaussian ``p(x_{t+1})``:
 Every dimension of ``x`` is predicted as a difference (the GP has ``E = D`` outputs). The
 cross-covariances chain in the package convention ``cov[x, g(x)] = S @ C`` (see :mod:`moments`),
 which is exact for the jointly Gaussian approximations made at each stage (paper eq. 12).
+
+Gradients: with a fixed dynamics model and a controller whose moment map is a
+:class:`~plugins.pilco.controllers.MomentStage`, a whole rollout is one autograd node
+(:class:`FusedStep`, :class:`_RolloutFunction`): the stages' hand-derived backward passes are
+chained by hand in reverse time order, without per-operator autograd bookkeeping (the policy
+objective's J + dJ is dominated by the number of small operator calls). Otherwise (a model with
+gradients, a plain callable policy) autograd differentiates :func:`propagate_step_autograd`.
 """
 
 from __future__ import annotations

@@ -91,6 +91,12 @@ def _objective(case: str) -> PolicyObjective:
         cost = SaturatingCost(np.zeros((0, 3)), np.array([[1.0, 0.0, 0.5]]), np.array([0.3]), 1.0)
         post = random_posterior(3, 30, 4, gen)
         return PolicyObjective(ctrl, post, layout, cost, [0.1, -0.2, 0.3], 0.05 * np.eye(3), 12)
+    if case == "two-angles-linear":
+        layout = StateLayout.with_trig(4, [2, 3])  # inputs [x0, x1, sin x2, sin x3, cos x2, cos x3]
+        cost = SaturatingCost(np.array([[0.0, 0, 1, 0], [0, 0, 0, 1]]), np.array([[0, 0, 0, 0, 1.0, 0, 0, 0], [0, 0, 0, 0, 0, 0, 0, 1.0]]), np.array([0.0, 1.0]), 0.7)
+        ctrl = SquashedController(LinearController.initial(6, 1, 0.5, gen), [2.0])
+        post = random_posterior(4, 40, 7, gen)
+        return PolicyObjective(ctrl, post, layout, cost, [0.0, 0.1, 0.4, -0.3], 0.1 * np.eye(4) ** 2, 12)
     layout = StateLayout.with_trig(4, [3])
     cost = SaturatingCost(np.array([[0.0, 0, 0, 1]]), np.array([[1.0, 0, 0, 0, 0.5, 0], [0, 0, 0, 0, 0, -0.5]]), np.array([0.0, 0.5]), 0.5)
     controls = 2 if case == "rbf-two-controls" else 1
@@ -106,7 +112,7 @@ def _objective(case: str) -> PolicyObjective:
     return PolicyObjective(ctrl, post, layout, cost, [0.0, 0.1, -0.1, 0.3], 0.1 * np.eye(4) ** 2, 15, mean_only=mean_only)
 
 
-@pytest.mark.parametrize("case", ["rbf", "rbf-two-controls", "rbf-fitc-mean-only", "linear-sin", "no-angles-linear"])
+@pytest.mark.parametrize("case", ["rbf", "rbf-two-controls", "rbf-fitc-mean-only", "linear-sin", "no-angles-linear", "two-angles-linear"])
 def test_fused_objective_equals_plain_autograd(case: str) -> None:
     obj = _objective(case)
     theta = obj.get_flat()
