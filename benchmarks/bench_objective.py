@@ -241,9 +241,10 @@ def main() -> None:
         + " At n = 300 the (pairs, n, n) = (10, 300, 300) tensors take a large share (profile below).",
         "* Before/after comparison with the previous implementation: "
         "`results/benchmarks/objective_gradient_before_after.md` (`benchmarks/compare_objective.py`).",
-        "* Two torch threads on this shared 2-CPU machine are several times slower than one: OpenMP "
-        "workers wait for a descheduled peer in every parallel region. Use `torch.set_num_threads(1)` "
-        "for policy optimisation here.",
+        "* Two torch threads on this shared 2-CPU machine were several times slower than one whenever "
+        "measured (`--threads 1 2`; e.g. 6.8 s instead of 0.21 s at n = 100 on 2026-11-22 03:07 UTC with "
+        "the previous implementation): OpenMP workers wait for a descheduled peer in every parallel "
+        "region. Use `torch.set_num_threads(1)` for policy optimisation here.",
         "* torch.compile (inductor, one compiled graph per time step) was tried once on an earlier "
         "version of this code: about 200 s of compilation for 0.29 s instead of 0.33 s per evaluation "
         "at n = 100, so it is not used.",
