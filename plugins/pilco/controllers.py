@@ -7,8 +7,8 @@ Every controller maps policy inputs ``x (p,)`` to controls ``(F,)`` and offers
   C (p, F))`` with ``cov[x, u] = S @ C`` for ``x ~ N(m, S)``. Parameter-only work (e.g. the RBF
   weights) is done once when the map is built, so build it once per policy evaluation, not once
   per time step. A stage also offers the same moments as an explicit forward/backward pair
-  (:meth:`MomentStage.forward`, :meth:`MomentStage.backward`), which the rollout fuses into one
-  autograd node per time step (:mod:`plugins.pilco.propagate`).
+  (:meth:`MomentStage.forward`, :meth:`MomentStage.backward`), which the rollout chains into one
+  autograd node for all time steps (:mod:`plugins.pilco.propagate`).
 
 Controllers are ``torch.nn.Module``s whose ``parameters()`` are exactly the policy parameters theta.
 """

@@ -69,7 +69,8 @@ def _pair_indices(num_outputs: int) -> tuple[torch.Tensor, torch.Tensor, torch.T
 
 
 class _Workspace:
-    """Reusable scratch buffers (``Q (P, n, n)`` and a product ``(E, n, n)``) for the contraction.
+    """Reusable scratch buffers for the contraction: ``Q (P, n, n)``, and ``Q * inv_k (E, n, n)`` in
+    the backward pass.
 
     Fresh multi-megabyte tensors are expensive here (first-touch page faults cost about as much as
     the arithmetic), so every prediction with one :class:`MomentMatchingGP` writes into the same
