@@ -224,6 +224,8 @@ def main() -> None:
             f"{'-' if target is None else f'{target:.0f}'} | {ops[name]} |"
         )
     per_step = ops["full n=100"] / HORIZON
+    one_thread = {name: r for name, threads, r in rows if threads == 1}
+    n100 = one_thread.get("full n=100")
     lines += [
         "",
         "Reference: the public TensorFlow port needs about 400 ms (n = 100) and 2.7 s (n = 300).",
@@ -231,17 +233,24 @@ def main() -> None:
         "Notes:",
         "",
         f"* One evaluation makes {ops['full n=100']} aten operator calls ({per_step:.0f} per time step, "
-        "independent of n): at n = 100 the arithmetic is a small part and the time is per-call "
-        "dispatch overhead, which is why n = 100 stays above its 80 ms target; at n = 300 about half "
-        "of the time is spent on the (pairs, n, n) = (10, 300, 300) tensors (profile below).",
-        "* Two torch threads on this shared 2-CPU machine are several times slower than one: OpenMP "
-        "workers wait for a descheduled peer in every parallel region. Use `torch.set_num_threads(1)` "
-        "for policy optimisation here.",
+        "independent of n). The rollout is one autograd node (`plugins.pilco.propagate.FusedStep`: trig, "
+        "policy, squash, GP moment matching and state update chained with hand-derived backward passes, "
+        "run in `torch.inference_mode`), so at n = 100 the time is mostly the per-call overhead of these "
+        "small operators"
+        + (f" ({n100['cpu']:.0f} ms CPU at 1 thread here)." if n100 else ".")
+        + " At n = 300 the (pairs, n, n) = (10, 300, 300) tensors take a large share (profile below).",
+        "* Before/after comparison with the previous implementation: "
+        "`results/benchmarks/objective_gradient_before_after.md` (`benchmarks/compare_objective.py`).",
+        "* Two torch threads on this shared 2-CPU machine were several times slower than one whenever "
+        "measured (`--threads 1 2`; e.g. 6.8 s instead of 0.21 s at n = 100 on 2026-11-22 03:07 UTC with "
+        "the previous implementation): OpenMP workers wait for a descheduled peer in every parallel "
+        "region. Use `torch.set_num_threads(1)` for policy optimisation here.",
         "* torch.compile (inductor, one compiled graph per time step) was tried once on an earlier "
         "version of this code: about 200 s of compilation for 0.29 s instead of 0.33 s per evaluation "
         "at n = 100, so it is not used.",
-        "* Memory: the backward pass keeps one (pairs, n, n) float64 tensor per time step "
-        "(cart-pole n = 300: 40 x 7.2 MB); the objective keeps these buffers between evaluations.",
+        "* Memory: nothing of size n^2 is kept per time step; the backward pass recomputes each step's "
+        "Q = exp(left right^T) (P x n x n) into a scratch buffer reused by all steps (before: 40 kept "
+        "buffers of 7.2 MB at n = 300, ~290 MB).",
         "",
     ]
     if prof:

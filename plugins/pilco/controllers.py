@@ -3,9 +3,12 @@
 Every controller maps policy inputs ``x (p,)`` to controls ``(F,)`` and offers
 
 * ``forward(x)``: the deterministic control for a known input (``x (..., p)`` -> ``(..., F)``);
-* ``moment_map()``: a function ``(m (p,), S (p, p)) -> (M (F,), V (F, F), C (p, F))`` with
-  ``cov[x, u] = S @ C`` for ``x ~ N(m, S)``. Parameter-only work (e.g. the RBF weights) is done
-  once when the map is built, so build it once per policy evaluation, not once per time step.
+* ``moment_map()``: a :class:`MomentStage`, callable as ``(m (p,), S (p, p)) -> (M (F,), V (F, F),
+  C (p, F))`` with ``cov[x, u] = S @ C`` for ``x ~ N(m, S)``. Parameter-only work (e.g. the RBF
+  weights) is done once when the map is built, so build it once per policy evaluation, not once
+  per time step. A stage also offers the same moments as an explicit forward/backward pair
+  (:meth:`MomentStage.forward`, :meth:`MomentStage.backward`), which the rollout chains into one
+  autograd node for all time steps (:mod:`plugins.pilco.propagate`).
 
 Controllers are ``torch.nn.Module``s whose ``parameters()`` are exactly the policy parameters theta.
 """
@@ -14,6 +17,7 @@ from __future__ import annotations
 
 import math
 from collections.abc import Callable
+from typing import Protocol, runtime_checkable
 
 import torch
 from torch import nn
@@ -21,9 +25,95 @@ from torch import nn
 from plugins.pilco.kernels import cholesky, se_ard
 from plugins.pilco.moments import MomentMatchingGP
 from plugins.pilco.posterior import GPPosterior
-from plugins.pilco.trig import SQUASH_KINDS, squash, squash_maps, squash_moments
+from plugins.pilco.trig import SQUASH_KINDS, _sin_backward, _sin_forward, squash, squash_maps, squash_moments
 
 MomentMap = Callable[[torch.Tensor, torch.Tensor], tuple[torch.Tensor, torch.Tensor, torch.Tensor]]
+
+
+@runtime_checkable
+class MomentStage(Protocol):
+    """A controller's moment map ``(m (p,), S (p, p)) -> (M (F,), V (F, F), C (p, F))``, twice:
+
+    * ``stage(m, S)``: differentiable by autograd (the reference path);
+    * ``stage.forward(m, S) -> ((M, V, C), saved)`` without a graph, and
+      ``stage.backward(saved, gM, gV, gC, needs) -> (g_m, g_S, *g_tensors)``: the hand-derived
+      gradients wrt ``m``, ``S`` and ``stage.tensors`` (the parameter-derived tensors the moments
+      depend on; ``needs[i]`` says whether ``tensors[i]`` needs one, ``None`` is returned if not).
+    """
+
+    tensors: tuple[torch.Tensor, ...]
+
+    def __call__(self, m: torch.Tensor, S: torch.Tensor) -> tuple[torch.Tensor, torch.Tensor, torch.Tensor]: ...
+
+    def forward(self, m: torch.Tensor, S: torch.Tensor) -> tuple[tuple[torch.Tensor, torch.Tensor, torch.Tensor], tuple]: ...
+
+    def backward(self, saved: tuple, gM: torch.Tensor, gV: torch.Tensor, gC: torch.Tensor, needs) -> tuple: ...
+
+
+class GPMeanStage:
+    """Moments of a GP's *mean function* (``mean_only`` moment matching; the RBF policy)."""
+
+    def __init__(self, gp: MomentMatchingGP) -> None:
+        self.gp = gp
+        self.tensors = gp.constants
+
+    def __call__(self, m, S):
+        return self.gp.predict(m, S, mean_only=True)
+
+    def forward(self, m, S):
+        return self.gp.forward(m, S, mean_only=True)
+
+    def backward(self, saved, gM, gV, gC, needs):
+        return self.gp.backward(saved, gM, gV, gC, True, (True, True, *needs))
+
+
+class LinearStage:
+    """``u = W x + b``: ``M = W m + b``, ``V = W S W^T``, ``C = W^T`` (exact). ``W (F, p)``, ``b (F,)``."""
+
+    def __init__(self, weight: torch.Tensor, bias: torch.Tensor) -> None:
+        self.tensors = (weight, bias)
+
+    def __call__(self, m, S):
+        W, b = self.tensors
+        return W @ m + b, W @ S @ W.T, W.T
+
+    def forward(self, m, S):
+        return self(m, S), (m, S)
+
+    def backward(self, saved, gM, gV, gC, needs):
+        (W, _), (m, S) = self.tensors, saved
+        g_W = torch.outer(gM, m) + gV @ W @ S.T + gV.T @ W @ S + gC.T if needs[0] else None
+        return W.T @ gM, W.T @ gV @ W, g_W, gM if needs[1] else None
+
+
+class SquashStage:
+    """A base stage followed by squashing ``u = G sin(A z)`` (:func:`~plugins.pilco.trig.squash_maps`).
+
+    Moments of ``u``: ``M = G E[sin]``, ``V = G cov[sin] G^T``, ``C = C_base C_sin G^T``.
+    """
+
+    def __init__(self, base: MomentStage, u_max: torch.Tensor, kind: str) -> None:
+        self.base, self.u_max, self.kind = base, u_max, kind
+        self.maps = squash_maps(u_max, kind)
+        self.tensors = base.tensors
+
+    def __call__(self, m, S):
+        mz, sz, cz = self.base(m, S)
+        mu, su, cu = squash_moments(mz, sz, self.u_max, self.kind, self.maps)
+        return mu, su, cz @ cu
+
+    def forward(self, m, S):
+        A, G = self.maps
+        (mz, sz, cz), saved_base = self.base.forward(m, S)
+        (ms, vs, cs), saved_sin = _sin_forward(mz, sz, A, None)
+        cu = cs @ G.T  # (F, F)
+        return (ms @ G.T, G @ vs @ G.T, cz @ cu), (saved_base, saved_sin, cz, cu)
+
+    def backward(self, saved, gM, gV, gC, needs):
+        A, G = self.maps
+        saved_base, saved_sin, cz, cu = saved
+        g_mz, g_sz = _sin_backward(A, saved_sin, gM @ G, G.T @ gV @ G, (cz.T @ gC) @ G)
+        return self.base.backward(saved_base, g_mz, g_sz, gC @ cu.T, needs)
 
 #: fixed RBF-policy signal standard deviation and noise standard deviation (reference congp)
 RBF_SIGNAL_STD = 1.0
@@ -93,9 +183,8 @@ class RBFController(nn.Module):
         z = torch.einsum("anm,am->na", k, post.beta)
         return z.reshape(*x.shape[:-1], self.num_controls)
 
-    def moment_map(self) -> MomentMap:
-        gp = MomentMatchingGP(self.posterior())
-        return lambda m, S: gp.predict(m, S, mean_only=True)
+    def moment_map(self) -> MomentStage:
+        return GPMeanStage(MomentMatchingGP(self.posterior()))
 
 
 class LinearController(nn.Module):
@@ -124,9 +213,8 @@ class LinearController(nn.Module):
     def forward(self, x: torch.Tensor) -> torch.Tensor:
         return x @ self.weight.T + self.bias
 
-    def moment_map(self) -> MomentMap:
-        W, b = self.weight, self.bias
-        return lambda m, S: (W @ m + b, W @ S @ W.T, W.T)
+    def moment_map(self) -> MomentStage:
+        return LinearStage(self.weight, self.bias)
 
 
 class SquashedController(nn.Module):
@@ -154,16 +242,6 @@ class SquashedController(nn.Module):
         z = self.base(x)
         return z if self.kind is None else squash(z, self.u_max, self.kind)
 
-    def moment_map(self) -> MomentMap:
-        base_map = self.base.moment_map()
-        if self.kind is None:
-            return base_map
-        u_max, kind = self.u_max, self.kind
-        maps = squash_maps(u_max, kind)
-
-        def moments(m: torch.Tensor, S: torch.Tensor):
-            mz, sz, cz = base_map(m, S)
-            mu, su, cu = squash_moments(mz, sz, u_max, kind, maps)
-            return mu, su, cz @ cu
-
-        return moments
+    def moment_map(self) -> MomentStage:
+        base_stage = self.base.moment_map()
+        return base_stage if self.kind is None else SquashStage(base_stage, self.u_max, self.kind)

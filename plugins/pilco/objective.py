@@ -1,8 +1,10 @@
 """The policy objective J(theta) = sum_{t=1..H} E[c(x_t)] and its gradient (reference ``value.m``).
 
 ``x_0 ~ N(mu0, Sigma0)`` is not costed (gamma = 1, as in all reference scenarios). J is a closed-form
-function of theta (moment matching all the way), so ``torch.autograd`` gives its exact gradient
-(paper eqs. 26-30 are the chain rule autograd carries out).
+function of theta (moment matching all the way), so its gradient is exact: ``torch.autograd`` runs
+the chain rule of paper eqs. 26-30, through one hand-differentiated node for the whole rollout
+(:class:`~plugins.pilco.propagate.FusedStep`) and ordinary autograd for the policy's parameters
+-> RBF network and for the cost.
 
 :class:`PolicyObjective` also adapts J to ``scipy.optimize.minimize(..., jac=True)``: it packs the
 controller parameters into one flat float64 vector (in ``controller.parameters()`` order) and

@@ -50,6 +50,39 @@ def _sin_forward(m, S, A, b):
     return moments, (s, c, e, diff, summ, cos_d, cos_s, pos, neg, half_ee, inner)
 
 
+def _sin_backward(A, saved, g_mean, g_cov, g_cross, need_m=True, need_S=True):
+    """Hand-derived gradients of :func:`_sin_forward` wrt ``(m, S)`` (``A``, ``b`` fixed).
+
+    ``saved``: the intermediates from :func:`_sin_forward`; ``g_*``: gradients wrt the three
+    moments (``None`` for zero). Returns ``(g_m, g_S)`` (``None`` where not needed).
+    """
+    s, c, e, diff, summ, cos_d, cos_s, pos, neg, half_ee, inner = saved
+    g_e = torch.zeros_like(e)
+    g_mu = torch.zeros_like(e)
+    g_vy = torch.zeros_like(inner)
+    if g_cov is not None:
+        # cov_ij = 1/2 e_i e_j [expm1(v_ij) cos(mu_i - mu_j) - expm1(-v_ij) cos(mu_i + mu_j)]
+        gh = g_cov * half_ee
+        g_vy = gh * ((pos + 1.0) * cos_d + (neg + 1.0) * cos_s)
+        p_sd = pos * torch.sin(diff)
+        n_ss = neg * torch.sin(summ)
+        g_mu = (gh * (n_ss - p_sd)).sum(-1) + (gh * (n_ss + p_sd)).sum(-2)
+        gi = 0.5 * g_cov * inner
+        g_e = (gi * e[..., None, :]).sum(-1) + (gi * e[..., :, None]).sum(-2)
+    if g_mean is not None:  # mean = e sin mu
+        g_e = g_e + g_mean * s
+        g_mu = g_mu + g_mean * e * c
+    if g_cross is not None:  # cross = A^T diag(e cos mu)
+        g_ec = (g_cross * A.T).sum(-2)
+        g_e = g_e + g_ec * c
+        g_mu = g_mu - g_ec * e * s
+    # e = exp(-vy_ii / 2),  vy = A S A^T,  mu = A m + b
+    g_vy = g_vy - torch.diag_embed(0.5 * e * g_e)
+    g_S = A.T @ g_vy @ A if need_S else None
+    g_m = g_mu @ A if need_m else None
+    return g_m, g_S
+
+
 class _SinMoments(torch.autograd.Function):
     """:func:`sin_moments` with a hand-derived backward pass (wrt ``m`` and ``S``; ``A``, ``b`` fixed)."""
 
@@ -62,31 +95,8 @@ class _SinMoments(torch.autograd.Function):
     @staticmethod
     @torch.autograd.function.once_differentiable
     def backward(ctx, g_mean, g_cov, g_cross):
-        A = ctx.A
-        s, c, e, diff, summ, cos_d, cos_s, pos, neg, half_ee, inner = ctx.saved
-        g_e = torch.zeros_like(e)
-        g_mu = torch.zeros_like(e)
-        g_vy = torch.zeros_like(inner)
-        if g_cov is not None:
-            # cov_ij = 1/2 e_i e_j [expm1(v_ij) cos(mu_i - mu_j) - expm1(-v_ij) cos(mu_i + mu_j)]
-            gh = g_cov * half_ee
-            g_vy = gh * ((pos + 1.0) * cos_d + (neg + 1.0) * cos_s)
-            p_sd = pos * torch.sin(diff)
-            n_ss = neg * torch.sin(summ)
-            g_mu = (gh * (n_ss - p_sd)).sum(-1) + (gh * (n_ss + p_sd)).sum(-2)
-            gi = 0.5 * g_cov * inner
-            g_e = (gi * e[..., None, :]).sum(-1) + (gi * e[..., :, None]).sum(-2)
-        if g_mean is not None:  # mean = e sin mu
-            g_e = g_e + g_mean * s
-            g_mu = g_mu + g_mean * e * c
-        if g_cross is not None:  # cross = A^T diag(e cos mu)
-            g_ec = (g_cross * A.T).sum(-2)
-            g_e = g_e + g_ec * c
-            g_mu = g_mu - g_ec * e * s
-        # e = exp(-vy_ii / 2),  vy = A S A^T,  mu = A m + b
-        g_vy = g_vy - torch.diag_embed(0.5 * e * g_e)
-        g_S = A.T @ g_vy @ A if ctx.needs_input_grad[1] else None
-        g_m = g_mu @ A if ctx.needs_input_grad[0] else None
+        needs = ctx.needs_input_grad
+        g_m, g_S = _sin_backward(ctx.A, ctx.saved, g_mean, g_cov, g_cross, needs[0], needs[1])
         return g_m, g_S, None, None
 
 

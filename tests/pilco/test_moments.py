@@ -159,25 +159,26 @@ def test_contraction_backward_gradcheck() -> None:
     wr = torch.randn(P, n, generator=gen, dtype=DT).requires_grad_()
     A = torch.randn(e, n, n, generator=gen, dtype=DT)
     inv_k = (A + A.mT).requires_grad_()
-    for slot in (None, 0):
-        fn = lambda *args: _ExpBilinearContraction.apply(*args, _Workspace(), slot)  # noqa: E731
-        assert torch.autograd.gradcheck(fn, (left, right, wl, wr, inv_k))
+    workspace = _Workspace()
+    fn = lambda *args: _ExpBilinearContraction.apply(*args, workspace)  # noqa: E731
+    assert torch.autograd.gradcheck(fn, (left, right, wl, wr, inv_k))
 
 
-def test_reused_work_buffer_is_detected() -> None:
-    """Overwriting a slot before the backward pass of the graph that used it raises."""
+def test_backward_recomputes_q_after_the_workspace_is_reused() -> None:
+    """Several predictions share one workspace before any backward pass (as a rollout does):
+    each backward recomputes its own Q, so the gradients equal those of separate evaluations."""
     gen = torch.Generator().manual_seed(801)
-    gp = MomentMatchingGP(random_posterior(2, 8, 3, gen))
+    post = random_posterior(2, 8, 3, gen)
+    gp = MomentMatchingGP(post)
     m, S = random_gaussian(3, gen)
     m.requires_grad_()
-    M1, V1, _ = gp.predict(m, S, slot=0)
-    M2, V2, _ = gp.predict(m + 0.1, S, slot=0)
-    torch.autograd.grad(V2.sum(), m)  # the latest use of the slot is fine
-    with pytest.raises(RuntimeError, match="modified by an inplace operation"):
-        torch.autograd.grad(V1.sum(), m)
-    # results do not depend on the slot
-    M3, V3, _ = gp.predict(m, S, slot=None)
-    assert torch.equal(M1, M3) and torch.equal(V1, V3)
+    _, V1, _ = gp.predict(m, S)
+    _, V2, _ = gp.predict(m + 0.1, 0.5 * S)
+    g1, g2 = torch.autograd.grad(V1.sum(), m), torch.autograd.grad(V2.sum(), m)
+    f1 = torch.autograd.grad(MomentMatchingGP(post).predict(m, S)[1].sum(), m)
+    f2 = torch.autograd.grad(MomentMatchingGP(post).predict(m + 0.1, 0.5 * S)[1].sum(), m)
+    assert torch.equal(g1[0], f1[0]) and torch.equal(g2[0], f2[0])
+    assert not torch.allclose(g1[0], g2[0])
 
 
 @pytest.mark.parametrize("mean_only", [False, True])
@@ -217,7 +218,7 @@ def test_hand_derived_backward_equals_autograd(num_outputs: int, mean_only: bool
             leaves += list(tensors)
         gp = MomentMatchingGP(GPPosterior(*tensors, post.log_sigma))
         assert gp.has_grad == posterior_grad
-        out = gp.predict(*leaves[:2], mean_only, slot=3) if hand else gp._forward(*leaves[:2], mean_only, None, None)[0]
+        out = gp.predict(*leaves[:2], mean_only) if hand else gp._forward(*leaves[:2], mean_only, None)[0]
         loss = sum((o * w).sum() for o, w in zip(out, weights))
         grads = torch.autograd.grad(loss, leaves, allow_unused=True)
         grads = [torch.zeros_like(x) if g is None else g for g, x in zip(grads, leaves)]  # unused inv_k if mean_only

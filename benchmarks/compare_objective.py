@@ -1,0 +1,153 @@
+"""Side-by-side timing of one PILCO J(theta) + dJ/dtheta evaluation for two checkouts of this repo.
+
+Usage::
+
+    .venv/bin/python benchmarks/compare_objective.py --before /path/to/old/checkout --after . [--rounds 3] [--repeats 10]
+
+Every measurement runs in a fresh subprocess with one torch thread (``PYTHONPATH`` = that checkout,
+so each side imports its own ``plugins.pilco``); the subprocesses alternate ``before, after,
+before, after, ...`` so that both sides see the same machine load. Each builds the objective of
+``benchmarks/bench_objective.py`` (cart-pole, T = 40, RBF policy with 50 centres; full GP with
+n = 100 and 300, FITC with n = 1000 and 300 pseudo-inputs) and reports, per configuration:
+
+* median wall and CPU (``time.process_time``) milliseconds of ``--repeats`` J + dJ evaluations
+  after 3 warm-ups (the medians of the rounds are then medianed);
+* aten operator calls per J + dJ (``TorchDispatchMode``);
+* memory: growth of the process's peak resident set (``VmHWM``) over the evaluations, from just
+  after the objective is built (what one J + dJ adds at its peak, buffers kept between evaluations included);
+* J and dJ of both sides at the same theta, and their relative differences; for scale, how much J
+  and dJ of the *same* side change when every entry of theta moves by one or two ulps (the
+  objective's own rounding sensitivity: two implementations that round differently cannot agree
+  more closely than this).
+
+Writes a markdown table to ``--out`` (default ``results/benchmarks/objective_gradient_before_after.md``).
+"""
+
+from __future__ import annotations
+
+import argparse
+import json
+import os
+import statistics
+import subprocess
+import sys
+import time
+from pathlib import Path
+
+import numpy as np
+
+ROOT = Path(__file__).resolve().parents[1]
+CONFIGS = {"full n=100": (100, None), "full n=300": (300, None), "FITC n=1000, 300 pseudo": (1000, 300)}
+
+CHILD = r"""
+import json, os, sys, time
+root, n, pseudo, repeats = sys.argv[1], int(sys.argv[2]), sys.argv[3], int(sys.argv[4])
+sys.path.insert(0, root)
+import numpy as np, torch
+torch.set_num_threads(1)
+sys.argv = [sys.argv[0]]
+from collections import Counter
+from torch.utils._python_dispatch import TorchDispatchMode
+from benchmarks.bench_objective import dynamics_posterior, make_objective
+
+def status_mb(key):
+    with open("/proc/self/status") as fh:
+        return int(next(l for l in fh if l.startswith(key)).split()[1]) / 1024
+
+obj = make_objective(dynamics_posterior(n, None if pseudo == "-" else int(pseudo)))
+theta = obj.get_flat()
+hwm0 = status_mb("VmHWM")
+for _ in range(3):
+    J, g = obj(theta)
+wall, cpu = [], []
+for _ in range(repeats):
+    t0, c0 = time.perf_counter(), time.process_time()
+    obj(theta)
+    wall.append(time.perf_counter() - t0)
+    cpu.append(time.process_time() - c0)
+hwm1 = status_mb("VmHWM")
+
+class Counting(TorchDispatchMode):
+    def __init__(self):
+        super().__init__()
+        self.calls = 0
+    def __torch_dispatch__(self, func, types, args=(), kwargs=None):
+        self.calls += 1
+        return func(*args, **(kwargs or {}))
+
+with Counting() as counter:
+    obj(theta)
+rng = np.random.default_rng(0)
+J1, g1 = obj(theta * (1 + np.finfo(float).eps * rng.choice([-2.0, -1.0, 1.0, 2.0], theta.shape)))
+print(json.dumps(dict(wall=1e3 * float(np.median(wall)), cpu=1e3 * float(np.median(cpu)), peak_growth_mb=hwm1 - hwm0,
+                      ops=counter.calls, J=float(J), grad=g.tolist(), ulp_rel_j=abs(J1 - J) / abs(J),
+                      ulp_rel_g=float(np.linalg.norm(g1 - g) / np.linalg.norm(g)))))
+"""
+
+
+def run_child(root: str, n: int, pseudo: int | None, repeats: int) -> dict:
+    env = dict(os.environ, PYTHONPATH=root, OMP_NUM_THREADS="1", MKL_NUM_THREADS="1")
+    args = [sys.executable, "-c", CHILD, root, str(n), "-" if pseudo is None else str(pseudo), str(repeats)]
+    proc = subprocess.run(args, capture_output=True, text=True, env=env, cwd=root, check=False)
+    if proc.returncode != 0:
+        raise RuntimeError(f"child failed for {root} n={n}:\n{proc.stderr}")
+    return json.loads(proc.stdout)
+
+
+def main() -> None:
+    parser = argparse.ArgumentParser(description=__doc__, formatter_class=argparse.RawDescriptionHelpFormatter)
+    parser.add_argument("--before", required=True, help="checkout with the old implementation")
+    parser.add_argument("--after", default=str(ROOT), help="checkout with the new implementation")
+    parser.add_argument("--rounds", type=int, default=3)
+    parser.add_argument("--repeats", type=int, default=10)
+    parser.add_argument("--out", default=str(ROOT / "results" / "benchmarks" / "objective_gradient_before_after.md"))
+    args = parser.parse_args()
+    sides = {"before": str(Path(args.before).resolve()), "after": str(Path(args.after).resolve())}
+
+    load_before = os.getloadavg()
+    results = {name: {side: [] for side in sides} for name in CONFIGS}
+    for _ in range(args.rounds):
+        for name, (n, pseudo) in CONFIGS.items():
+            for side, root in sides.items():
+                results[name][side].append(run_child(root, n, pseudo, args.repeats))
+                r = results[name][side][-1]
+                print(f"{name:26s} {side:6s} wall {r['wall']:7.1f} ms  cpu {r['cpu']:7.1f} ms", flush=True)
+    load_after = os.getloadavg()
+
+    command = ".venv/bin/python benchmarks/compare_objective.py " + " ".join(sys.argv[1:])
+    lines = [
+        "# PILCO objective J + dJ: before / after, side by side (cart-pole setting of bench_objective.py)",
+        "",
+        f"Command: `{command.strip()}`  ",
+        f"Date: {time.strftime('%Y-%m-%d %H:%M:%S UTC', time.gmtime())}; load average before/after: "
+        f"{load_before[0]:.1f} / {load_after[0]:.1f} (shared 2-CPU machine; prefer CPU time and ratios).  ",
+        f"before = `{sides['before']}`, after = `{sides['after']}`; {args.rounds} rounds x {args.repeats} "
+        "evaluations per side and configuration, alternating subprocesses, 1 torch thread; medians.",
+        "",
+        "| dynamics posterior | wall ms before / after | CPU ms before / after | CPU speed-up | aten calls before / after "
+        "| peak RSS growth MB before / after | rel. diff J | rel. diff dJ (2-norm) | max abs diff dJ / max abs dJ "
+        "| before's own change of J, dJ for theta +- 1-2 ulp |",
+        "|---|---|---|---|---|---|---|---|---|---|",
+    ]
+    for name, per_side in results.items():
+        med = {side: {k: statistics.median(r[k] for r in runs) for k in ("wall", "cpu", "peak_growth_mb")} for side, runs in per_side.items()}
+        b, a = per_side["before"][0], per_side["after"][0]
+        gb, ga = np.array(b["grad"]), np.array(a["grad"])
+        rel_j = abs(a["J"] - b["J"]) / abs(b["J"])
+        rel_g = np.linalg.norm(ga - gb) / np.linalg.norm(gb)
+        max_g = np.max(np.abs(ga - gb)) / np.max(np.abs(gb))
+        lines.append(
+            f"| {name} | {med['before']['wall']:.0f} / {med['after']['wall']:.0f} | {med['before']['cpu']:.0f} / {med['after']['cpu']:.0f} "
+            f"| {med['before']['cpu'] / med['after']['cpu']:.2f} | {b['ops']} / {a['ops']} "
+            f"| {med['before']['peak_growth_mb']:.0f} / {med['after']['peak_growth_mb']:.0f} | {rel_j:.1e} | {rel_g:.1e} | {max_g:.1e} "
+            f"| {b['ulp_rel_j']:.1e}, {b['ulp_rel_g']:.1e} |"
+        )
+    text = "\n".join(lines) + "\n"
+    Path(args.out).parent.mkdir(parents=True, exist_ok=True)
+    Path(args.out).write_text(text)
+    print()
+    print(text)
+
+
+if __name__ == "__main__":
+    main()
