@@ -24,21 +24,23 @@ double pendulum   0.05    20 default  3.1e-8   6.7e-8   2.2e-5
 double pendulum   0.05    40          1.9e-9   4.2e-9   1.5e-6
 ================  ======  ==========  =======  =======  =======
 
-Accuracy against speed: RK4 needs ~4 right-hand-side calls per sub-step; at ~0.85 us (cart-pole)
-and ~2.2 us (double pendulum) per call in CPython, a one-step error below 1e-8 everywhere costs
-more than the 5,000 env steps per second the RL baselines need. The defaults use the same RK4
-step ``h = 2.5 ms`` for both tasks: errors of 1e-8 to 1e-7 near the start and the target, up to
-2e-5 at angular rates of 10 rad/s (more beyond: the error grows roughly with the fourth power of
-the rates), i.e. three or more orders of magnitude below the 0.01 measurement noise;
-the option ``substeps`` (recorded with every run) buys the 1e-8 of the reference's ``ode45``
-(cart-pole 50, double pendulum 40) at roughly 0.8x and 0.55x the speed
-(``benchmarks/bench_env_steps.py``).
+Accuracy against speed: RK4 needs 4 right-hand-side evaluations per sub-step, ~0.6 us (cart-pole)
+and ~1.1 us (double pendulum) each in CPython with the fused steppers below. The defaults use the
+same RK4 step ``h = 2.5 ms`` for both tasks: errors of 1e-8 to 1e-7 near the start and the target,
+up to 2e-5 at angular rates of 10 rad/s (more beyond: the error grows roughly with the fourth
+power of the rates), i.e. three or more orders of magnitude below the 0.01 measurement noise, at
+~11,000 (cart-pole) and ~8,600 (double pendulum) env steps per CPU second, above the 5,000 the RL
+baselines need. The option ``substeps`` (recorded with every run) buys the 1e-8 of the
+reference's ``ode45`` (cart-pole 50, double pendulum 40) at ~9,700 and ~5,000 steps per CPU
+second (``benchmarks/bench_env_steps.py``, ``results/benchmarks/env_steps.md``).
 
 Fused steppers: a task may hand :class:`OdeEnv` a *stepper*, ``step(z, u, dt, substeps)``, that
 performs exactly the arithmetic of ``rk4_zoh(rhs, z, u, dt, substeps)`` on local scalars: the
 stages of a mechanical system's angles and positions are its stage velocities, so only the
 accelerations need a function call, and no per-stage lists are built. The results are
-bit-identical to :func:`rk4_zoh` (``tests/tasks/test_simulation.py``) at about twice the speed.
+bit-identical to :func:`rk4_zoh` (``tests/tasks/test_simulation.py``; the seeded rollouts of
+``tests/tasks/test_env_trajectories.py`` equal those recorded with the generic path) at 1.4-2x
+the speed.
 
 Environment
 -----------

@@ -9,7 +9,8 @@ psi_t = turntable (flywheel) rotation, (x, y) = wheel contact point on the floor
 rad/s, angles in rad. Controls ``u = [u_t, u_w]``: torque on the turntable (|u_t| <= 10 Nm) and
 on the wheel (|u_w| <= 50 Nm), the reference's ``maxU = [10 50]`` for ``[ct, cw]``.
 
-Equations of motion (:func:`unicycle_matrices`, :func:`unicycle_rhs`): the five angular
+Equations of motion (:func:`unicycle_system`, :func:`unicycle_matrices`, :func:`unicycle_rhs`; the
+environment steps them with the fused RK4 of :func:`unicycle_stepper`): the five angular
 accelerations are ``-A^{-1} b`` with the 5x5 ``A`` and ``b`` of the reference note §1.10.3; the
 contact point rolls without slipping, ``xdot = r_w cos(phi) psidot_w``, ``ydot = r_w sin(phi)
 psidot_w``; the angle derivatives are the rates. Friction torque ``T = 0`` as in the reference.
@@ -73,11 +74,14 @@ OBS_FROM_ODE = (0, 1, 2, 3, 4, 7, 8, 10)  # ODE indices of obs entries 0-4, 7, 8
 OBS_IDENTITY = (0, 1, 2, 3, 4, 7, 8, 9)  # the matching observation indices
 
 #: Default RK4 sub-steps per second of system time: 30 per 0.15 s control step (option
-#: ``substeps``; 4 right-hand-side calls of ~12 us each per sub-step). One-step max-abs error
-#: against :func:`tasks.simulation.reference_step`: 2.8e-6 (worst of 10 states with rates up to
-#: 2 rad/s, angles up to 0.6 rad, torques at the bounds; ``test_rk4_step_matches_reference_solver``
-#: checks < 1e-5). States already falling (angles ~1.2 rad, rates ~3 rad/s) reach errors of order 1:
-#: near the fall boundary ``|theta| = pi/2`` the equations become stiff (``A`` nearly singular).
+#: ``substeps``; 4 right-hand-side evaluations of ~4 us each per sub-step, ~2,000 env steps per
+#: CPU second). One-step max-abs error against :func:`tasks.simulation.reference_step`: 2.8e-6
+#: (worst of 10 states with rates up to 2 rad/s, angles up to 0.6 rad, torques at the bounds;
+#: ``test_rk4_step_matches_reference_solver`` checks < 1e-5); with 24 sub-steps 6.3e-6 at ~2,500
+#: steps/s, with 20 1.2e-5. A fixed-step 8th-order Dormand-Prince does not need fewer evaluations
+#: here (8e-5 with 4 steps = 48 evaluations). States already falling (angles ~1.2 rad, rates
+#: ~3 rad/s) reach errors of order 1: near the fall boundary ``|theta| = pi/2`` the equations
+#: become stiff (``A`` nearly singular).
 SUBSTEPS_PER_SECOND = 200
 #: seed and size of the Monte-Carlo estimate of the initial distribution in observation coordinates.
 INIT_MC_SEED = 20110628
