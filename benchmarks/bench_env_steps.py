@@ -3,7 +3,7 @@
 Usage::
 
     .venv/bin/python benchmarks/bench_env_steps.py [--steps 10000] [--repeats 5] [--set task.key=value ...]
-        [--tasks cartpole,unicycle] [--baseline PATH]
+        [--tasks cartpole,unicycle] [--baseline PATH [--baseline-label COMMIT]]
 
 Every measurement runs in a fresh worker process (this script with ``--worker``), so that the
 current code and a ``--baseline`` checkout of an older commit (e.g. made with
@@ -100,6 +100,7 @@ def main(argv: list[str] | None = None) -> None:
                         help="task option, e.g. cartpole.substeps=40")
     parser.add_argument("--baseline", type=Path, default=None,
                         help="checkout of an older commit to measure side by side (its tasks package)")
+    parser.add_argument("--baseline-label", default=None, help="what the baseline is, e.g. its commit id")
     parser.add_argument("--out", type=Path, default=ROOT / "results" / "benchmarks" / "env_steps.md")
     parser.add_argument("--worker", default=None, help=argparse.SUPPRESS)
     parser.add_argument("--root", type=Path, default=ROOT, help=argparse.SUPPRESS)
@@ -145,7 +146,8 @@ def main(argv: list[str] | None = None) -> None:
         "(comparable across loads); steps/wall-s is what a run on this shared machine saw.",
     ]
     if args.baseline:
-        lines.append(f"Baseline: the `tasks` package of `{args.baseline}` (an older commit), measured interleaved "
+        label = f"commit {args.baseline_label}" if args.baseline_label else "an older commit"
+        lines.append(f"Baseline: the `tasks` package of `{args.baseline}` ({label}), measured interleaved "
                      "with the current code.")
     lines.append("")
     if args.baseline:
