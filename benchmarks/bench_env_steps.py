@@ -1,18 +1,28 @@
-"""Raw environment throughput of the simulated tasks (steps per second, random actions).
+"""Raw environment throughput of the simulated tasks (steps per CPU second, random actions).
 
 Usage::
 
-    .venv/bin/python benchmarks/bench_env_steps.py [--steps 20000] [--repeats 3] [--set task.key=value ...]
+    .venv/bin/python benchmarks/bench_env_steps.py [--steps 10000] [--repeats 5] [--set task.key=value ...]
+        [--tasks cartpole,unicycle] [--baseline PATH [--baseline-label COMMIT]]
 
-Prints steps/s for each env (best of ``--repeats``, resets included) and writes
-``results/benchmarks/env_steps.md`` with the command, the machine load and the numbers.
+Every measurement runs in a fresh worker process (this script with ``--worker``), so that the
+current code and a ``--baseline`` checkout of an older commit (e.g. made with
+``mkdir /tmp/base && git archive <commit> | tar -x -C /tmp/base``; its ``tasks`` package is
+imported instead) are measured
+the same way, interleaved repeat by repeat on the shared machine. Prints and writes
+``results/benchmarks/env_steps.md``: the command, the load average, the median over the repeats
+of steps per CPU second (and of steps per wall second) for each env, and the speed-up against
+the baseline when one is given.
 """
 
 from __future__ import annotations
 
 import argparse
+import json
 import os
 import platform
+import statistics
+import subprocess
 import sys
 import time
 from pathlib import Path
@@ -20,26 +30,26 @@ from pathlib import Path
 import numpy as np
 
 ROOT = Path(__file__).resolve().parents[1]
-sys.path.insert(0, str(ROOT))
 
-from harness.errors import NumericalError  # noqa: E402
-from tasks.cartpole import CartPole  # noqa: E402
-from tasks.double_pendulum import CartDoublePendulum  # noqa: E402
-from tasks.unicycle import Unicycle  # noqa: E402
-
-#: the simulated tasks (stepped by tasks.simulation); dm_control's cart-pole is MuJoCo's business.
-TASKS = {"cartpole": CartPole, "double-pendulum": CartDoublePendulum, "unicycle": Unicycle}
+#: task name -> (module, class). dmc-cartpole needs the ``dmc`` extra (dm_control).
+TASKS = {
+    "cartpole": ("tasks.cartpole", "CartPole"),
+    "double-pendulum": ("tasks.double_pendulum", "CartDoublePendulum"),
+    "unicycle": ("tasks.unicycle", "Unicycle"),
+    "dmc-cartpole": ("tasks.dmc_cartpole", "DMCCartpole"),
+}
 
 
 def steps_per_second(task, steps: int, seed: int = 0) -> tuple[float, float, int]:
     """``(steps per CPU second, steps per wall second, diverged episodes)`` under uniform random actions.
 
-    An episode whose simulation diverges (:class:`~harness.errors.NumericalError`) is counted
-    and replaced by a fresh one.
-
-    CPU time of this process is the figure to compare across runs: the machine is shared, and
-    wall time then measures the other jobs as much as the env.
+    Resets are included. An episode whose simulation diverges
+    (:class:`~harness.errors.NumericalError`) is counted and replaced by a fresh one. CPU time of
+    this process is the figure to compare across runs: the machine is shared, and wall time then
+    measures the other jobs as much as the env.
     """
+    from harness.errors import NumericalError
+
     env = task.make_env()
     rng = np.random.default_rng(seed)
     spec = task.spec
@@ -58,44 +68,107 @@ def steps_per_second(task, steps: int, seed: int = 0) -> tuple[float, float, int
     return steps / (time.process_time() - cpu), steps / (time.perf_counter() - wall), diverged
 
 
+def worker(root: Path, name: str, options: dict[str, str], steps: int, seed: int) -> dict:
+    """One measurement with the ``tasks`` package of ``root``; returns the figures and the task's settings."""
+    sys.path.insert(0, str(root))
+    import importlib
+
+    module, cls = TASKS[name]
+    task = getattr(importlib.import_module(module), cls)(**options)
+    cpu, wall, diverged = steps_per_second(task, steps, seed)
+    opts = task.options
+    return {"cpu": cpu, "wall": wall, "diverged": diverged, "dt": task.spec.dt,
+            "substeps": opts.get("substeps", opts.get("action_repeat"))}
+
+
+def measure(root: Path, name: str, options: dict[str, str], steps: int, seed: int) -> dict:
+    """Run :func:`worker` in a fresh interpreter (``root``'s code on the path, this file as the driver)."""
+    cmd = [sys.executable, str(Path(__file__).resolve()), "--worker", name, "--root", str(root),
+           "--steps", str(steps), "--seed", str(seed)]
+    cmd += [f"--set={name}.{k}={v}" for k, v in options.items()]
+    env = {**os.environ, "PYTHONPATH": str(root), "OMP_NUM_THREADS": "1", "MUJOCO_GL": os.environ.get("MUJOCO_GL", "egl")}
+    out = subprocess.run(cmd, check=True, capture_output=True, text=True, env=env).stdout
+    return json.loads(out.strip().splitlines()[-1])
+
+
 def main(argv: list[str] | None = None) -> None:
     parser = argparse.ArgumentParser(description=__doc__.splitlines()[0])
-    parser.add_argument("--steps", type=int, default=20000)
-    parser.add_argument("--repeats", type=int, default=3)
+    parser.add_argument("--steps", type=int, default=10000)
+    parser.add_argument("--repeats", type=int, default=5)
+    parser.add_argument("--tasks", default=",".join(TASKS), help="comma-separated task names")
     parser.add_argument("--set", action="append", default=[], metavar="TASK.KEY=VALUE",
                         help="task option, e.g. cartpole.substeps=40")
+    parser.add_argument("--baseline", type=Path, default=None,
+                        help="checkout of an older commit to measure side by side (its tasks package)")
+    parser.add_argument("--baseline-label", default=None, help="what the baseline is, e.g. its commit id")
     parser.add_argument("--out", type=Path, default=ROOT / "results" / "benchmarks" / "env_steps.md")
+    parser.add_argument("--worker", default=None, help=argparse.SUPPRESS)
+    parser.add_argument("--root", type=Path, default=ROOT, help=argparse.SUPPRESS)
+    parser.add_argument("--seed", type=int, default=0, help=argparse.SUPPRESS)
     args = parser.parse_args(argv)
+    names = [n for n in args.tasks.split(",") if n]
     options: dict[str, dict[str, str]] = {name: {} for name in TASKS}
     for item in args.set:
         key, value = item.split("=", 1)
         name, opt = key.rsplit(".", 1)
         options[name][opt] = value
+    if args.worker:
+        print(json.dumps(worker(args.root, args.worker, options[args.worker], args.steps, args.seed)))
+        return
+
+    load = os.getloadavg() if hasattr(os, "getloadavg") else (float("nan"),) * 3
+    versions = {"current": ROOT} | ({"baseline": args.baseline.resolve()} if args.baseline else {})
     rows = []
-    for name, cls in TASKS.items():
-        task = cls(**options[name])
-        runs = [steps_per_second(task, args.steps, seed=r) for r in range(args.repeats)]
-        cpu, wall = max(r[0] for r in runs), max(r[1] for r in runs)
-        diverged = sum(r[2] for r in runs)
-        rows.append((name, task.spec.dt, task.options["substeps"], cpu, wall, diverged))
-        print(f"{name:16s} dt={task.spec.dt:.2f}s substeps={task.options['substeps']:3d}  "
-              f"{cpu:8.0f} steps/CPU-s  {wall:8.0f} steps/wall-s  diverged episodes: {diverged}", flush=True)
+    for name in names:
+        runs: dict[str, list[dict]] = {v: [] for v in versions}
+        for r in range(args.repeats):
+            for version, root in versions.items():  # interleaved: both see the same machine load
+                runs[version].append(measure(root, name, options[name], args.steps, seed=r))
+        med = {v: {k: statistics.median(run[k] for run in rs) for k in ("cpu", "wall")} for v, rs in runs.items()}
+        first = runs["current"][0]
+        row = {"name": name, "dt": first["dt"], "substeps": first["substeps"], "median": med,
+               "spread": {v: (min(x["cpu"] for x in rs), max(x["cpu"] for x in rs)) for v, rs in runs.items()},
+               "diverged": {v: sum(x["diverged"] for x in rs) for v, rs in runs.items()}}
+        rows.append(row)
+        text = "  ".join(f"{v}: {m['cpu']:7.0f} steps/CPU-s ({m['wall']:7.0f}/wall-s)" for v, m in med.items())
+        print(f"{name:16s} dt={row['dt']:.2f}s sub-steps={row['substeps']:3d}  {text}", flush=True)
+    load_end = os.getloadavg() if hasattr(os, "getloadavg") else (float("nan"),) * 3
     command = "python benchmarks/bench_env_steps.py " + " ".join(argv if argv is not None else sys.argv[1:])
-    load = os.getloadavg()[0] if hasattr(os, "getloadavg") else float("nan")
     lines = [
         "# Raw env throughput of the simulated tasks",
         "",
         f"Command: `{command.strip()}`  ",
-        f"Machine: {platform.processor() or platform.machine()}, {os.cpu_count()} cores, "
-        f"load average {load:.1f} at the start (shared machine), Python {platform.python_version()}  ",
-        f"Random uniform actions, {args.steps} steps per repeat, best of {args.repeats}, resets included. "
-        "steps/CPU-s uses this process's CPU time (comparable across loads); steps/wall-s is what "
-        "a run on this shared machine saw.",
-        "",
-        "| env | dt [s] | RK4 sub-steps | steps/CPU-s | steps/wall-s | diverged episodes |",
-        "|---|---|---|---|---|---|",
+        f"Machine: {platform.processor() or platform.machine()}, {os.cpu_count()} cores (shared with other jobs), "
+        f"load average (1/5/15 min) {load[0]:.1f}/{load[1]:.1f}/{load[2]:.1f} at the start, "
+        f"{load_end[0]:.1f}/{load_end[1]:.1f}/{load_end[2]:.1f} at the end; Python {platform.python_version()}  ",
+        f"Uniform random actions, {args.steps} steps per repeat, resets included, each repeat in a fresh process; "
+        f"median of {args.repeats} repeats (min-max in brackets). steps/CPU-s uses the process's CPU time "
+        "(comparable across loads); steps/wall-s is what a run on this shared machine saw.",
     ]
-    lines += [f"| {n} | {dt:.2f} | {s} | {c:.0f} | {w:.0f} | {d} |" for n, dt, s, c, w, d in rows]
+    if args.baseline:
+        label = f"commit {args.baseline_label}" if args.baseline_label else "an older commit"
+        lines.append(f"Baseline: the `tasks` package of `{args.baseline}` ({label}), measured interleaved "
+                     "with the current code.")
+    lines.append("")
+    if args.baseline:
+        lines += ["| env | dt [s] | sub-steps | baseline steps/CPU-s | current steps/CPU-s | speed-up | "
+                  "current steps/wall-s | diverged episodes |", "|---|---|---|---|---|---|---|---|"]
+    else:
+        lines += ["| env | dt [s] | sub-steps | steps/CPU-s | steps/wall-s | diverged episodes |",
+                  "|---|---|---|---|---|---|"]
+    for row in rows:
+        cur, (lo, hi) = row["median"]["current"], row["spread"]["current"]
+        cells = [row["name"], f"{row['dt']:.2f}", str(row["substeps"])]
+        if args.baseline:
+            base, (blo, bhi) = row["median"]["baseline"], row["spread"]["baseline"]
+            cells += [f"{base['cpu']:.0f} [{blo:.0f}-{bhi:.0f}]", f"{cur['cpu']:.0f} [{lo:.0f}-{hi:.0f}]",
+                      f"{cur['cpu'] / base['cpu']:.2f}x"]
+        else:
+            cells += [f"{cur['cpu']:.0f} [{lo:.0f}-{hi:.0f}]"]
+        cells += [f"{cur['wall']:.0f}", str(row["diverged"]["current"])]
+        lines.append("| " + " | ".join(cells) + " |")
+    lines += ["", "Sub-steps: RK4 sub-steps per control step for the ODE tasks, MuJoCo physics steps "
+              "(action repeat) for dmc-cartpole."]
     args.out.parent.mkdir(parents=True, exist_ok=True)
     args.out.write_text("\n".join(lines) + "\n")
     print(f"wrote {args.out}")

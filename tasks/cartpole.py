@@ -15,7 +15,7 @@ Lagrangian.) The pole tip is at ``(x + l sin th, -l cos th)``; the goal is the t
 from __future__ import annotations
 
 import math
-from collections.abc import Sequence
+from collections.abc import Callable, Sequence
 from dataclasses import dataclass
 
 import numpy as np
@@ -23,7 +23,7 @@ import numpy as np
 from harness.options import Option
 from harness.task import Episode, SaturatingCost, TaskSpec
 from tasks.drawing import Canvas
-from tasks.simulation import OdeEnv, OdeTask, RightHandSide
+from tasks.simulation import OdeEnv, OdeTask, RightHandSide, Stepper
 from tasks.success import SUCCESS_RULES, held_within
 
 
@@ -39,11 +39,11 @@ class CartPoleParams:
     gravity: float = 9.82  # g, m/s^2
 
 
-def cartpole_rhs(params: CartPoleParams) -> RightHandSide:
-    """The right-hand side ``f(z, u) -> dz/dt`` for ``z = [x, xdot, thetadot, theta]``, force ``u = [f]`` (N).
+def cartpole_accelerations(params: CartPoleParams) -> Callable[[float, float, float, float], tuple[float, float]]:
+    """``accel(xdot, thetadot, theta, f) -> (xddot, thetaddot)``: the two equations of the module docstring.
 
-    Returns a closure over the parameters (constants folded once: the env calls it ~100 times per
-    control step, see :mod:`tasks.simulation`).
+    Units: m/s, rad/s, rad, N in; m/s^2, rad/s^2 out. Returns a closure over the parameters
+    (constants folded once: the env calls it 160 times per control step).
     """
     big_m, m, l, b, g = params.cart_mass, params.pole_mass, params.pole_length, params.friction, params.gravity
     k_den, k_cos2 = 4.0 * (big_m + m), 3.0 * m
@@ -51,21 +51,63 @@ def cartpole_rhs(params: CartPoleParams) -> RightHandSide:
     k_t_w2, k_t_g = -3.0 * m * l, -6.0 * (big_m + m) * g
     sin, cos = math.sin, math.cos
 
-    def rhs(z: Sequence[float], u: Sequence[float]) -> tuple[float, float, float, float]:
-        _, xd, thd, th = z
-        f = u[0]
+    def accel(xd: float, thd: float, th: float, f: float) -> tuple[float, float]:
         s, c = sin(th), cos(th)
-        den = k_den - k_cos2 * c * c
+        den = k_den - k_cos2 * c * c  # 4 (M + m) - 3 m cos^2 th
         fb = f - b * xd
         thd2s = thd * thd * s
         return (
-            xd,
             (k_x_w2 * thd2s + k_x_g * s * c + 4.0 * fb) / den,
             (k_t_w2 * thd2s * c + k_t_g * s - 6.0 * fb * c) / (l * den),
-            thd,
         )
 
+    return accel
+
+
+def cartpole_rhs(params: CartPoleParams) -> RightHandSide:
+    """The right-hand side ``f(z, u) -> dz/dt`` for ``z = [x, xdot, thetadot, theta]``, force ``u = [f]`` (N)."""
+    accel = cartpole_accelerations(params)
+
+    def rhs(z: Sequence[float], u: Sequence[float]) -> tuple[float, float, float, float]:
+        _, xd, thd, th = z
+        xdd, thdd = accel(xd, thd, th, u[0])
+        return (xd, xdd, thdd, thd)
+
     return rhs
+
+
+def cartpole_stepper(params: CartPoleParams) -> Stepper:
+    """``step(z, u, dt, substeps)``: ``rk4_zoh(cartpole_rhs(params), z, u, dt, substeps)`` on scalars.
+
+    The same arithmetic as :func:`tasks.simulation.rk4_zoh` (bit-identical results): the RK4
+    stage derivatives of ``x`` and ``theta`` are the stage velocities ``xd_i``, ``thd_i``, and the
+    accelerations do not depend on ``x``, so only :func:`cartpole_accelerations` is called.
+    ``z``: 4 floats ``[x, xdot, thetadot, theta]``; ``u``: ``[f]`` (N); ``dt`` in s. Returns 4 floats.
+    """
+    accel = cartpole_accelerations(params)
+
+    def step(z: Sequence[float], u: Sequence[float], dt: float, substeps: int) -> list[float]:
+        x, xd, thd, th = map(float, z)
+        f = float(u[0])
+        h = dt / substeps
+        half, sixth = 0.5 * h, h / 6.0
+        for _ in range(substeps):
+            a1, b1 = accel(xd, thd, th, f)  # k1 = (xd, a1, b1, thd)
+            xd2, thd2 = xd + half * a1, thd + half * b1
+            a2, b2 = accel(xd2, thd2, th + half * thd, f)  # k2 = (xd2, a2, b2, thd2)
+            xd3, thd3 = xd + half * a2, thd + half * b2
+            a3, b3 = accel(xd3, thd3, th + half * thd2, f)  # k3 = (xd3, a3, b3, thd3)
+            xd4, thd4 = xd + h * a3, thd + h * b3
+            a4, b4 = accel(xd4, thd4, th + h * thd3, f)  # k4 = (xd4, a4, b4, thd4)
+            x, xd, thd, th = (
+                x + sixth * (xd + 2.0 * (xd2 + xd3) + xd4),
+                xd + sixth * (a1 + 2.0 * (a2 + a3) + a4),
+                thd + sixth * (b1 + 2.0 * (b2 + b3) + b4),
+                th + sixth * (thd + 2.0 * (thd2 + thd3) + thd4),
+            )
+        return [x, xd, thd, th]
+
+    return step
 
 
 def cartpole_energy(z: Sequence[float], p: CartPoleParams) -> float:
@@ -119,6 +161,8 @@ class CartPole(OdeTask):
         self.params = CartPoleParams(pole_length=self.options["pole_length"])
         #: ``f(z, u) -> dz/dt`` with this task's physical parameters.
         self.rhs = cartpole_rhs(self.params)
+        #: the env's integrator: :func:`cartpole_stepper`, the same steps as ``rk4_zoh(self.rhs, ...)``.
+        self.stepper = cartpole_stepper(self.params)
         self._spec = self._build_spec()
 
     def _build_spec(self) -> TaskSpec:

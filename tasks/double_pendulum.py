@@ -25,7 +25,7 @@ criterion does); ``cost_link_length=1.0`` reproduces the reference code's cost.
 from __future__ import annotations
 
 import math
-from collections.abc import Sequence
+from collections.abc import Callable, Sequence
 from dataclasses import dataclass
 
 import numpy as np
@@ -33,7 +33,7 @@ import numpy as np
 from harness.options import Option
 from harness.task import Episode, SaturatingCost, TaskSpec
 from tasks.drawing import Canvas
-from tasks.simulation import OdeEnv, OdeTask, RightHandSide
+from tasks.simulation import OdeEnv, OdeTask, RightHandSide, Stepper
 from tasks.success import SUCCESS_RULES, held_within
 
 
@@ -50,10 +50,13 @@ class DoublePendulumParams:
     gravity: float = 9.82  # g, m/s^2
 
 
-def double_pendulum_rhs(params: DoublePendulumParams) -> RightHandSide:
-    """The right-hand side ``f(z, u) -> dz/dt`` for ``z = [x, xd, th1d, th2d, th1, th2]``, force ``u = [f]`` (N).
+def double_pendulum_accelerations(
+    params: DoublePendulumParams,
+) -> Callable[[float, float, float, float, float, float], tuple[float, float, float]]:
+    """``accel(xd, th1d, th2d, th1, th2, f) -> (xdd, th1dd, th2dd)``: ``A^{-1} r`` of the module docstring.
 
-    Returns a closure over the parameters; the 3x3 system is solved with the adjugate (Cramer).
+    Units: m/s, rad/s, rad/s, rad, rad, N in; m/s^2, rad/s^2, rad/s^2 out. Returns a closure over
+    the parameters; the 3x3 system is solved with the adjugate (Cramer).
     """
     m1, m2, m3 = params.cart_mass, params.link1_mass, params.link2_mass
     l2, l3, b, g = params.link1_length, params.link2_length, params.friction, params.gravity
@@ -63,27 +66,71 @@ def double_pendulum_rhs(params: DoublePendulumParams) -> RightHandSide:
     q2, q3 = (3.0 * m2 + 6.0 * m3) * g, 3.0 * g
     sin, cos = math.sin, math.cos
 
-    def rhs(z: Sequence[float], u: Sequence[float]) -> tuple[float, ...]:
-        _, xd, w1, w2, th1, th2 = z
+    def accel(xd: float, w1: float, w2: float, th1: float, th2: float, f: float) -> tuple[float, float, float]:
         s1, c1, s2, c2 = sin(th1), cos(th1), sin(th2), cos(th2)
         s12, c12 = sin(th1 - th2), cos(th1 - th2)
         a12, a13, a21, a23, a31, a32 = p12 * c1, p13 * c2, p21 * c1, p23 * c12, -3.0 * c2, p32 * c12
         w1s, w2s = w1 * w1, w2 * w2
-        r1 = 2.0 * (u[0] - b * xd) + p12 * w1s * s1 + p13 * w2s * s2
+        r1 = 2.0 * (f - b * xd) + p12 * w1s * s1 + p13 * w2s * s2
         r2 = q2 * s1 - p23 * w2s * s12
         r3 = p32 * w1s * s12 + q3 * s2
         c11, c12_, c13 = a22 * a33 - a23 * a32, a23 * a31 - a21 * a33, a21 * a32 - a22 * a31
         inv_det = 1.0 / (a11 * c11 + a12 * c12_ + a13 * c13)
         return (
-            xd,
             (c11 * r1 + (a13 * a32 - a12 * a33) * r2 + (a12 * a23 - a13 * a22) * r3) * inv_det,
             (c12_ * r1 + (a11 * a33 - a13 * a31) * r2 + (a13 * a21 - a11 * a23) * r3) * inv_det,
             (c13 * r1 + (a12 * a31 - a11 * a32) * r2 + (a11 * a22 - a12 * a21) * r3) * inv_det,
-            w1,
-            w2,
         )
 
+    return accel
+
+
+def double_pendulum_rhs(params: DoublePendulumParams) -> RightHandSide:
+    """The right-hand side ``f(z, u) -> dz/dt`` for ``z = [x, xd, th1d, th2d, th1, th2]``, force ``u = [f]`` (N)."""
+    accel = double_pendulum_accelerations(params)
+
+    def rhs(z: Sequence[float], u: Sequence[float]) -> tuple[float, ...]:
+        _, xd, w1, w2, th1, th2 = z
+        xdd, w1d, w2d = accel(xd, w1, w2, th1, th2, u[0])
+        return (xd, xdd, w1d, w2d, w1, w2)
+
     return rhs
+
+
+def double_pendulum_stepper(params: DoublePendulumParams) -> Stepper:
+    """``step(z, u, dt, substeps)``: ``rk4_zoh(double_pendulum_rhs(params), z, u, dt, substeps)`` on scalars.
+
+    The same arithmetic as :func:`tasks.simulation.rk4_zoh` (bit-identical results): the RK4
+    stage derivatives of ``x, th1, th2`` are the stage velocities, and the accelerations do not
+    depend on ``x``, so only :func:`double_pendulum_accelerations` is called.
+    ``z``: 6 floats ``[x, xd, th1d, th2d, th1, th2]``; ``u``: ``[f]`` (N); ``dt`` in s. Returns 6 floats.
+    """
+    accel = double_pendulum_accelerations(params)
+
+    def step(z: Sequence[float], u: Sequence[float], dt: float, substeps: int) -> list[float]:
+        x, xd, w1, w2, th1, th2 = map(float, z)
+        f = float(u[0])
+        h = dt / substeps
+        half, sixth = 0.5 * h, h / 6.0
+        for _ in range(substeps):
+            a1, p1, q1 = accel(xd, w1, w2, th1, th2, f)  # k1 = (xd, a1, p1, q1, w1, w2)
+            xd2, w12, w22 = xd + half * a1, w1 + half * p1, w2 + half * q1
+            a2, p2, q2 = accel(xd2, w12, w22, th1 + half * w1, th2 + half * w2, f)  # k2 = (xd2, a2, p2, q2, w12, w22)
+            xd3, w13, w23 = xd + half * a2, w1 + half * p2, w2 + half * q2
+            a3, p3, q3 = accel(xd3, w13, w23, th1 + half * w12, th2 + half * w22, f)
+            xd4, w14, w24 = xd + h * a3, w1 + h * p3, w2 + h * q3
+            a4, p4, q4 = accel(xd4, w14, w24, th1 + h * w13, th2 + h * w23, f)
+            x, xd, w1, w2, th1, th2 = (
+                x + sixth * (xd + 2.0 * (xd2 + xd3) + xd4),
+                xd + sixth * (a1 + 2.0 * (a2 + a3) + a4),
+                w1 + sixth * (p1 + 2.0 * (p2 + p3) + p4),
+                w2 + sixth * (q1 + 2.0 * (q2 + q3) + q4),
+                th1 + sixth * (w1 + 2.0 * (w12 + w13) + w14),
+                th2 + sixth * (w2 + 2.0 * (w22 + w23) + w24),
+            )
+        return [x, xd, w1, w2, th1, th2]
+
+    return step
 
 
 def double_pendulum_energy(z: Sequence[float], p: DoublePendulumParams) -> float:
@@ -149,6 +196,8 @@ class CartDoublePendulum(OdeTask):
         self.params = DoublePendulumParams()
         #: ``f(z, u) -> dz/dt`` with this task's physical parameters.
         self.rhs = double_pendulum_rhs(self.params)
+        #: the env's integrator: :func:`double_pendulum_stepper`, the same steps as ``rk4_zoh(self.rhs, ...)``.
+        self.stepper = double_pendulum_stepper(self.params)
         self._spec = self._build_spec()
 
     def _build_spec(self) -> TaskSpec:

@@ -24,15 +24,23 @@ double pendulum   0.05    20 default  3.1e-8   6.7e-8   2.2e-5
 double pendulum   0.05    40          1.9e-9   4.2e-9   1.5e-6
 ================  ======  ==========  =======  =======  =======
 
-Accuracy against speed: RK4 needs ~4 right-hand-side calls per sub-step; at ~0.85 us (cart-pole)
-and ~2.2 us (double pendulum) per call in CPython, a one-step error below 1e-8 everywhere costs
-more than the 5,000 env steps per second the RL baselines need. The defaults use the same RK4
-step ``h = 2.5 ms`` for both tasks: errors of 1e-8 to 1e-7 near the start and the target, up to
-2e-5 at angular rates of 10 rad/s (more beyond: the error grows roughly with the fourth power of
-the rates), i.e. three or more orders of magnitude below the 0.01 measurement noise;
-the option ``substeps`` (recorded with every run) buys the 1e-8 of the reference's ``ode45``
-(cart-pole 50, double pendulum 40) at roughly 0.8x and 0.55x the speed
-(``benchmarks/bench_env_steps.py``).
+Accuracy against speed: RK4 needs 4 right-hand-side evaluations per sub-step, ~0.6 us (cart-pole)
+and ~1.1 us (double pendulum) each in CPython with the fused steppers below. The defaults use the
+same RK4 step ``h = 2.5 ms`` for both tasks: errors of 1e-8 to 1e-7 near the start and the target,
+up to 2e-5 at angular rates of 10 rad/s (more beyond: the error grows roughly with the fourth
+power of the rates), i.e. three or more orders of magnitude below the 0.01 measurement noise, at
+~11,000 (cart-pole) and ~8,600 (double pendulum) env steps per CPU second, above the 5,000 the RL
+baselines need. The option ``substeps`` (recorded with every run) buys the 1e-8 of the
+reference's ``ode45`` (cart-pole 50, double pendulum 40) at ~9,700 and ~5,000 steps per CPU
+second (``benchmarks/bench_env_steps.py``, ``results/benchmarks/env_steps.md``).
+
+Fused steppers: a task may hand :class:`OdeEnv` a *stepper*, ``step(z, u, dt, substeps)``, that
+performs exactly the arithmetic of ``rk4_zoh(rhs, z, u, dt, substeps)`` on local scalars: the
+stages of a mechanical system's angles and positions are its stage velocities, so only the
+accelerations need a function call, and no per-stage lists are built. The results are
+bit-identical to :func:`rk4_zoh` (``tests/tasks/test_simulation.py``; the seeded rollouts of
+``tests/tasks/test_env_trajectories.py`` equal those recorded with the generic path) at 1.4-2x
+the speed.
 
 Environment
 -----------
@@ -48,6 +56,7 @@ from __future__ import annotations
 
 import math
 from collections.abc import Callable, Sequence
+from functools import partial
 from typing import Any
 
 import gymnasium as gym
@@ -58,6 +67,8 @@ from harness.task import Task, TaskSpec, check_action
 
 #: ``f(z, u) -> dz/dt``: state and control as float sequences, derivative as a tuple of floats.
 RightHandSide = Callable[[Sequence[float], Sequence[float]], Sequence[float]]
+#: ``step(z, u, dt, substeps) -> z_next``: one control period, the signature of ``rk4_zoh`` without ``rhs``.
+Stepper = Callable[[Sequence[float], Sequence[float], float, int], list[float]]
 
 
 def rk4_zoh(rhs: RightHandSide, z: Sequence[float], u: Sequence[float], dt: float, substeps: int) -> list[float]:
@@ -114,6 +125,8 @@ class OdeEnv(gym.Env):
             distribution).
         rhs: ``f(z, u)`` on the *physical* state.
         substeps: RK4 sub-steps per control period.
+        stepper: a fused equivalent of ``rk4_zoh(rhs, ...)`` (same results, faster); ``None``:
+            :func:`rk4_zoh` on ``rhs``.
         left_region: ``pred(state) -> bool``, true when the system left its allowed region
             (the episode then ends with ``terminated = True``); ``None``: never.
         draw: ``draw(state) -> (H, W, 3) uint8`` image, used by ``render_mode="rgb_array"``.
@@ -140,6 +153,7 @@ class OdeEnv(gym.Env):
         measurement_noise: bool = True,
         physical_from_state: Callable[[np.ndarray], Sequence[float]] | None = None,
         state_from_physical: Callable[[Sequence[float]], np.ndarray] | None = None,
+        stepper: Stepper | None = None,
     ) -> None:
         if render_mode not in (None, "rgb_array"):
             raise ValueError(f"{spec.name}: render_mode must be None or 'rgb_array', got {render_mode!r}")
@@ -151,6 +165,7 @@ class OdeEnv(gym.Env):
         self.metadata = {"render_modes": ["rgb_array"], "render_fps": max(1, int(round(1.0 / spec.dt)))}
         self.render_mode = render_mode
         self._rhs = rhs
+        self._stepper = stepper if stepper is not None else partial(rk4_zoh, rhs)
         self._substeps = int(substeps)
         self._left_region = left_region
         self._draw = draw
@@ -211,7 +226,7 @@ class OdeEnv(gym.Env):
             )
         u, clipped = check_action(action, spec)
         try:
-            z = rk4_zoh(self._rhs, self._z, u.tolist(), spec.dt, self._substeps)
+            z = self._stepper(self._z, u.tolist(), spec.dt, self._substeps)
         except (OverflowError, ValueError, ZeroDivisionError) as exc:
             z = [math.nan]
             cause: Exception | None = exc
@@ -250,12 +265,14 @@ def _cholesky_psd(cov: np.ndarray) -> np.ndarray:
 
 
 class OdeTask(Task):
-    """Base of the simulated tasks: subclasses set ``self._spec`` and ``self.rhs`` in ``__init__``,
-    declare a ``substeps`` option and a ``draw(state) -> RGB`` method; environments are
-    :class:`OdeEnv` instances integrating ``rhs`` with the shared RK4."""
+    """Base of the simulated tasks: subclasses set ``self._spec`` and ``self.rhs`` (and optionally
+    ``self.stepper``, a fused ``rk4_zoh`` of ``rhs``) in ``__init__``, declare a ``substeps`` option
+    and a ``draw(state) -> RGB`` method; environments are :class:`OdeEnv` instances integrating
+    ``rhs`` with the shared RK4."""
 
     _spec: TaskSpec
     rhs: RightHandSide
+    stepper: Stepper | None = None
 
     @property
     def spec(self) -> TaskSpec:
@@ -269,4 +286,5 @@ class OdeTask(Task):
             draw=self.draw,
             render_mode=render_mode,
             measurement_noise=measurement_noise,
+            stepper=self.stepper,
         )

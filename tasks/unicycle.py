@@ -9,7 +9,8 @@ psi_t = turntable (flywheel) rotation, (x, y) = wheel contact point on the floor
 rad/s, angles in rad. Controls ``u = [u_t, u_w]``: torque on the turntable (|u_t| <= 10 Nm) and
 on the wheel (|u_w| <= 50 Nm), the reference's ``maxU = [10 50]`` for ``[ct, cw]``.
 
-Equations of motion (:func:`unicycle_matrices`, :func:`unicycle_rhs`): the five angular
+Equations of motion (:func:`unicycle_system`, :func:`unicycle_matrices`, :func:`unicycle_rhs`; the
+environment steps them with the fused RK4 of :func:`unicycle_stepper`): the five angular
 accelerations are ``-A^{-1} b`` with the 5x5 ``A`` and ``b`` of the reference note §1.10.3; the
 contact point rolls without slipping, ``xdot = r_w cos(phi) psidot_w``, ``ydot = r_w sin(phi)
 psidot_w``; the angle derivatives are the rates. Friction torque ``T = 0`` as in the reference.
@@ -45,7 +46,7 @@ so the observation is a complete state for control; ``TaskSpec.physical_state_di
 from __future__ import annotations
 
 import math
-from collections.abc import Sequence
+from collections.abc import Callable, Sequence
 from dataclasses import dataclass
 from functools import lru_cache
 
@@ -55,7 +56,7 @@ import numpy as np
 from harness.options import Option
 from harness.task import Episode, SaturatingCost, Task, TaskSpec
 from tasks.drawing import Canvas
-from tasks.simulation import OdeEnv
+from tasks.simulation import OdeEnv, RightHandSide, Stepper
 
 #: observation entries (the reference's ``dyno``), with units.
 STATE_NAMES = (
@@ -73,11 +74,14 @@ OBS_FROM_ODE = (0, 1, 2, 3, 4, 7, 8, 10)  # ODE indices of obs entries 0-4, 7, 8
 OBS_IDENTITY = (0, 1, 2, 3, 4, 7, 8, 9)  # the matching observation indices
 
 #: Default RK4 sub-steps per second of system time: 30 per 0.15 s control step (option
-#: ``substeps``; 4 right-hand-side calls of ~12 us each per sub-step). One-step max-abs error
-#: against :func:`tasks.simulation.reference_step`: 2.8e-6 (worst of 10 states with rates up to
-#: 2 rad/s, angles up to 0.6 rad, torques at the bounds; ``test_rk4_step_matches_reference_solver``
-#: checks < 1e-5). States already falling (angles ~1.2 rad, rates ~3 rad/s) reach errors of order 1:
-#: near the fall boundary ``|theta| = pi/2`` the equations become stiff (``A`` nearly singular).
+#: ``substeps``; 4 right-hand-side evaluations of ~4 us each per sub-step, ~2,000 env steps per
+#: CPU second). One-step max-abs error against :func:`tasks.simulation.reference_step`: 2.8e-6
+#: (worst of 10 states with rates up to 2 rad/s, angles up to 0.6 rad, torques at the bounds;
+#: ``test_rk4_step_matches_reference_solver`` checks < 1e-5); with 24 sub-steps 6.3e-6 at ~2,500
+#: steps/s, with 20 1.2e-5. A fixed-step 8th-order Dormand-Prince does not need fewer evaluations
+#: here (8e-5 with 4 steps = 48 evaluations). States already falling (angles ~1.2 rad, rates
+#: ~3 rad/s) reach errors of order 1: near the fall boundary ``|theta| = pi/2`` the equations
+#: become stiff (``A`` nearly singular).
 SUBSTEPS_PER_SECOND = 200
 #: seed and size of the Monte-Carlo estimate of the initial distribution in observation coordinates.
 INIT_MC_SEED = 20110628
@@ -110,6 +114,101 @@ class UnicycleParams:
         return self.r_f + self.r_t
 
 
+#: ``system(thd, phd, pwd, pfd, ptd, theta, psi_f, u_t, u_w) -> (A entries..., b...)``, see :func:`unicycle_system`.
+UnicycleSystem = Callable[..., tuple[float, ...]]
+
+
+@lru_cache(maxsize=None)
+def unicycle_system(p: UnicycleParams) -> UnicycleSystem:
+    """The equations of motion as a closure over the parameters: the nonzero entries of ``A`` and ``b``.
+
+    ``system(thd, phd, pwd, pfd, ptd, th, pf, V, U)`` takes the five rates (rad/s), the roll
+    ``theta`` and the pitch ``psi_f`` (rad), the turntable and wheel torques ``V = u_t``, ``U = u_w``
+    (Nm) and returns the 20 floats ``(A00, A01, A04, A11, A12, A13, A20, A21, A24, A30, A31, A34,
+    A41, A42, A43, b0, b1, b2, b3, b4)`` (0-based; every other entry of the 5x5 ``A`` is zero) with
+    ``[thdd, phdd, psdd_w, psdd_f, psdd_t] = -A^{-1} b`` (reference note §1.10.3). The right-hand
+    side calls it 120 times per control step: the parameters are closure locals, not attributes.
+    """
+    m_t, m_w, m_f, r_w, r_f, r_t = p.m_t, p.m_w, p.m_f, p.r_w, p.r_f, p.r_t
+    C_w, A_w, C_f, B_f, A_f, C_t, A_t, g, T = p.C_w, p.A_w, p.C_f, p.B_f, p.A_f, p.C_t, p.A_t, p.g, p.T
+    r = r_f + r_t
+    # constant sub-expressions of the equations below, evaluated once (the same floating-point
+    # operations as inline: the results are bit-identical to the unhoisted transcription)
+    AfCt, BfAt, CwAt, C2wAt, AfBfAt = A_f + C_t, B_f + A_t, C_w + A_t, 2 * C_w + A_t, A_f - B_f - A_t
+    n_AfCt, n_BfAt, CfBf, CfAf = -(A_f + C_t), -(B_f + A_t), C_f - B_f, C_f - A_f
+    mfg, mtg, M_g, Mft, Mft_g = m_f * g, m_t * g, (m_t + m_w + m_f) * g, m_f + m_t, (m_f + m_t) * g
+    rtmt, mwrw, m2wrw, A2w = r_t * m_t, m_w * r_w, 2 * m_w * r_w, 2 * A_w
+    mr_ft, mr_tf = m_f * r_f + m_t * r, m_t * r + m_f * r_f
+    lever_m, rw2_M = r_f * (m_f + m_t) + r_t * m_t, r_w * r_w * (m_w + m_f + m_t)
+    K = B_f + A_t + r_f * (m_f * r_f + m_t * r) + r_t * m_t * r
+    A13 = -C_w - A_t - r_f * (m_f * r_f + m_t * r) - r_t * m_t * r
+    n_Ct, n_Aw, n_rw, n_T = -C_t, -A_w, -r_w, -T
+    sin, cos = math.sin, math.cos
+
+    def system(
+        thd: float, phd: float, pwd: float, pfd: float, ptd: float, th: float, pf: float, V: float, U: float
+    ) -> tuple[float, ...]:
+        st, ct, sf, cf = sin(th), cos(th), sin(pf), cos(pf)
+
+        w1 = phd * sf * ct + cf * thd
+        w2 = -phd * cf * ct + sf * thd
+        w3 = -phd * st + pfd
+        ww = -phd * st + pwd
+        wt = -w2 + ptd
+        a1 = phd * sf * pfd * ct + phd * cf * st * thd + cf * pfd * thd
+        a2 = phd * cf * pfd * ct - phd * sf * st * thd - pfd * sf * thd
+
+        # P, Q, R of the reference note are affine in the lever rho: X(rho) = X0 + rho X1
+        wwr = ww * r_w
+        P0 = sf * pfd * wwr + cf * phd * ct * thd * r_w - w3 * sf * wwr - w2 * thd * r_w
+        P1 = phd * ct * thd - w2 * w1
+        Q0 = w1 * sf * wwr - w2 * cf * wwr
+        Q1 = a2 - w2 * w3
+        R0 = -cf * pfd * wwr + sf * phd * ct * thd * r_w + w1 * thd * r_w + w3 * cf * wwr
+        R1 = w1 * w1 + w3 * w3
+        P_f, P_r, Q_f, Q_r, R_f, R_r = P0 + r_f * P1, P0 + r * P1, Q0 + r_f * Q1, Q0 + r * Q1, R0 + r_f * R1, R0 + r * R1
+        E1 = n_AfCt * a1 - CfBf * w1 * w3
+        E2 = n_BfAt * a2 + CfAf * w2 * w3 + A_t * w2 * w3 + C_t * w3 * wt
+        G = r_f * (mfg * st - m_f * Q_f + mtg * st - m_t * Q_r) + r_t * (mtg * st - m_t * Q_r)
+        H = (r_f * (mfg * sf * ct + m_f * P_f + mtg * sf * ct + m_t * P_r)
+             + r_t * (mtg * sf * ct + m_t * P_r))
+        L = r_f * (m_f * (cf * r_f + r_w) + m_t * (cf * r + r_w)) + rtmt * (cf * r + r_w)
+
+        A00 = n_Ct * sf
+        A01 = C_t * cf * ct
+        A04 = C_t
+        A11 = (CwAt * st + r_f * st * (m_f * (r_f + cf * r_w) + m_t * (r + cf * r_w))
+               + rtmt * st * (r + cf * r_w))
+        A12 = -cf * r_w * lever_m
+        A20 = -cf * sf * AfCt + sf * (BfAt * cf + L)
+        A21 = A_w * ct + cf * cf * ct * AfCt + sf * sf * ct * K
+        A24 = C_t * cf
+        A30 = (-A_w - r_w * (m_f * (cf * r_f + r_w) + mwrw + m_t * (cf * r + r_w))
+               - sf * sf * AfCt - cf * (BfAt * cf + L))
+        A31 = n_rw * sf * ct * mr_tf + sf * cf * ct * AfCt - cf * sf * ct * K
+        A34 = C_t * sf
+        A41 = (C2wAt * st + r_f * st * (m_t * (r + cf * r_w) + m_f * (r_f + cf * r_w))
+               + rtmt * st * (r + cf * r_w)
+               + r_w * st * (mwrw + sf * sf * r_w * Mft
+                             + cf * (m_t * (r + cf * r_w) + m_f * (r_f + cf * r_w))))
+        A42 = -C_w - rtmt * cf * r_w - rw2_M - r_f * cf * r_w * Mft
+        A43 = A13 - r_w * cf * mr_ft
+
+        b0 = -V - C_t * a1
+        b1 = -U + CwAt * phd * ct * thd + AfBfAt * w1 * w2 - C_t * w1 * wt + H
+        b2 = n_T * ct - A2w * phd * st * thd - C_w * thd * ww + cf * E1 - sf * (E2 + G)
+        b3 = (n_Aw * phd * phd * st * ct - C_w * phd * ct * ww
+              - r_w * (m_w * phd * ct * ww * r_w - M_g * st + m_f * Q_f + m_t * Q_r)
+              + sf * E1 + cf * (E2 + G))
+        b4 = (n_T * st + C2wAt * phd * ct * thd + AfBfAt * w1 * w2 - C_t * w1 * wt + H
+              + r_w * (m2wrw * phd * ct * thd
+                       + sf * (m_f * R_f + m_t * R_r - Mft_g * cf * ct)
+                       + cf * (m_f * P_f + m_t * P_r + Mft_g * sf * ct)))
+        return A00, A01, A04, A11, A12, A13, A20, A21, A24, A30, A31, A34, A41, A42, A43, b0, b1, b2, b3, b4
+
+    return system
+
+
 def unicycle_matrices(
     z: Sequence[float], u: Sequence[float], p: UnicycleParams
 ) -> tuple[list[list[float]], list[float]]:
@@ -121,120 +220,155 @@ def unicycle_matrices(
         p: physical parameters.
 
     Returns:
-        ``(A, b)`` as a 5x5 list of lists and a list of 5 floats (reference note §1.10.3).
+        ``(A, b)`` as a 5x5 list of lists and a list of 5 floats (the entries of :func:`unicycle_system`).
     """
-    thd, phd, pwd, pfd, ptd = z[0], z[1], z[2], z[3], z[4]
-    th, pf = z[7], z[10]
-    V, U = u[0], u[1]
-    m_t, m_w, m_f, r_w, r_f, r_t = p.m_t, p.m_w, p.m_f, p.r_w, p.r_f, p.r_t
-    C_w, A_w, C_f, B_f, A_f, C_t, A_t, g, T = p.C_w, p.A_w, p.C_f, p.B_f, p.A_f, p.C_t, p.A_t, p.g, p.T
-    r = r_f + r_t
-    st, ct, sf, cf = math.sin(th), math.cos(th), math.sin(pf), math.cos(pf)
-
-    w1 = phd * sf * ct + cf * thd
-    w2 = -phd * cf * ct + sf * thd
-    w3 = -phd * st + pfd
-    ww = -phd * st + pwd
-    wt = -w2 + ptd
-    a1 = phd * sf * pfd * ct + phd * cf * st * thd + cf * pfd * thd
-    a2 = phd * cf * pfd * ct - phd * sf * st * thd - pfd * sf * thd
-
-    # P, Q, R of the reference note are affine in the lever rho: X(rho) = X0 + rho X1
-    wwr = ww * r_w
-    P0 = sf * pfd * wwr + cf * phd * ct * thd * r_w - w3 * sf * wwr - w2 * thd * r_w
-    P1 = phd * ct * thd - w2 * w1
-    Q0 = w1 * sf * wwr - w2 * cf * wwr
-    Q1 = a2 - w2 * w3
-    R0 = -cf * pfd * wwr + sf * phd * ct * thd * r_w + w1 * thd * r_w + w3 * cf * wwr
-    R1 = w1 * w1 + w3 * w3
-    P_f, P_r, Q_f, Q_r, R_f, R_r = P0 + r_f * P1, P0 + r * P1, Q0 + r_f * Q1, Q0 + r * Q1, R0 + r_f * R1, R0 + r * R1
-    E1 = -(A_f + C_t) * a1 - (C_f - B_f) * w1 * w3
-    E2 = -(B_f + A_t) * a2 + (C_f - A_f) * w2 * w3 + A_t * w2 * w3 + C_t * w3 * wt
-    G = r_f * (m_f * g * st - m_f * Q_f + m_t * g * st - m_t * Q_r) + r_t * (m_t * g * st - m_t * Q_r)
-    H = (r_f * (m_f * g * sf * ct + m_f * P_f + m_t * g * sf * ct + m_t * P_r)
-         + r_t * (m_t * g * sf * ct + m_t * P_r))
-    K = B_f + A_t + r_f * (m_f * r_f + m_t * r) + r_t * m_t * r
-    L = r_f * (m_f * (cf * r_f + r_w) + m_t * (cf * r + r_w)) + r_t * m_t * (cf * r + r_w)
-
-    A = [[0.0] * 5 for _ in range(5)]
-    A[0][0] = -C_t * sf
-    A[0][1] = C_t * cf * ct
-    A[0][4] = C_t
-    A[1][1] = ((C_w + A_t) * st + r_f * st * (m_f * (r_f + cf * r_w) + m_t * (r + cf * r_w))
-               + r_t * m_t * st * (r + cf * r_w))
-    A[1][2] = -cf * r_w * (r_f * (m_f + m_t) + r_t * m_t)
-    A[1][3] = -C_w - A_t - r_f * (m_f * r_f + m_t * r) - r_t * m_t * r
-    A[2][0] = -cf * sf * (A_f + C_t) + sf * ((B_f + A_t) * cf + L)
-    A[2][1] = A_w * ct + cf * cf * ct * (A_f + C_t) + sf * sf * ct * K
-    A[2][4] = C_t * cf
-    A[3][0] = (-A_w - r_w * (m_f * (cf * r_f + r_w) + m_w * r_w + m_t * (cf * r + r_w))
-               - sf * sf * (A_f + C_t) - cf * ((B_f + A_t) * cf + L))
-    A[3][1] = -r_w * sf * ct * (m_t * r + m_f * r_f) + sf * cf * ct * (A_f + C_t) - cf * sf * ct * K
-    A[3][4] = C_t * sf
-    A[4][1] = ((2 * C_w + A_t) * st + r_f * st * (m_t * (r + cf * r_w) + m_f * (r_f + cf * r_w))
-               + r_t * m_t * st * (r + cf * r_w)
-               + r_w * st * (m_w * r_w + sf * sf * r_w * (m_f + m_t)
-                             + cf * (m_t * (r + cf * r_w) + m_f * (r_f + cf * r_w))))
-    A[4][2] = -C_w - r_t * m_t * cf * r_w - r_w * r_w * (m_w + m_f + m_t) - r_f * cf * r_w * (m_f + m_t)
-    A[4][3] = -C_w - A_t - r_f * (m_f * r_f + m_t * r) - r_t * m_t * r - r_w * cf * (m_f * r_f + m_t * r)
-
-    b = [
-        -V - C_t * a1,
-        -U + (C_w + A_t) * phd * ct * thd + (A_f - B_f - A_t) * w1 * w2 - C_t * w1 * wt + H,
-        -T * ct - 2 * A_w * phd * st * thd - C_w * thd * ww + cf * E1 - sf * (E2 + G),
-        (-A_w * phd * phd * st * ct - C_w * phd * ct * ww
-         - r_w * (m_w * phd * ct * ww * r_w - (m_t + m_w + m_f) * g * st + m_f * Q_f + m_t * Q_r)
-         + sf * E1 + cf * (E2 + G)),
-        (-T * st + (2 * C_w + A_t) * phd * ct * thd + (A_f - B_f - A_t) * w1 * w2 - C_t * w1 * wt + H
-         + r_w * (2 * m_w * r_w * phd * ct * thd
-                  + sf * (m_f * R_f + m_t * R_r - (m_f + m_t) * g * cf * ct)
-                  + cf * (m_f * P_f + m_t * P_r + (m_f + m_t) * g * sf * ct))),
+    (A00, A01, A04, A11, A12, A13, A20, A21, A24, A30, A31, A34, A41, A42, A43, *b) = unicycle_system(p)(
+        z[0], z[1], z[2], z[3], z[4], z[7], z[10], u[0], u[1]
+    )
+    A = [
+        [A00, A01, 0.0, 0.0, A04],
+        [0.0, A11, A12, A13, 0.0],
+        [A20, A21, 0.0, 0.0, A24],
+        [A30, A31, 0.0, 0.0, A34],
+        [0.0, A41, A42, A43, 0.0],
     ]
     return A, b
 
 
-def _solve_accelerations(A: list[list[float]], b: list[float]) -> list[float]:
-    """``A^{-1} b`` using the block structure of the unicycle's ``A`` (Cramer's rule on the blocks).
+def _solve_blocks(
+    a00: float, a01: float, a04: float, a11: float, a12: float, a13: float, a20: float, a21: float, a24: float,
+    a30: float, a31: float, a34: float, a41: float, a42: float, a43: float,
+    b0: float, b1: float, b2: float, b3: float, b4: float,
+) -> tuple[float, float, float, float, float]:
+    """``A^{-1} b`` from the nonzero entries of the unicycle's ``A`` (Cramer's rule on the blocks).
 
     Rows 1, 3, 4 (1-based) of ``A`` involve only ``[thdd, phdd, psdd_t]`` (roll, yaw, turntable);
     rows 2 and 5 involve ``[phdd, psdd_w, psdd_f]``. So a 3x3 system gives roll, yaw and turntable
     accelerations, then a 2x2 system the wheel and pitch accelerations, and
-    ``det A = det(3x3 block) * det(2x2 block)`` (up to sign). A singular block gives inf/nan,
+    ``det A = det(3x3 block) * det(2x2 block)`` (up to sign). A singular block gives NaN,
     which the environment reports as a :class:`~harness.errors.NumericalError`.
     """
-    (a00, a01, _, _, a04), (_, a11, a12, a13, _), (a20, a21, _, _, a24), (a30, a31, _, _, a34), \
-        (_, a41, a42, a43, _) = A
-    b0, b1, b2, b3, b4 = b
     # 3x3: [[a00 a01 a04], [a20 a21 a24], [a30 a31 a34]] [thdd, phdd, ptdd] = [b0, b2, b3]
     c0 = a21 * a34 - a24 * a31
     c1 = a20 * a34 - a24 * a30
     c2 = a20 * a31 - a21 * a30
     det3 = a00 * c0 - a01 * c1 + a04 * c2
     if det3 == 0.0:
-        return [math.nan] * 5
+        return _NAN5
     x0 = (b0 * c0 - a01 * (b2 * a34 - a24 * b3) + a04 * (b2 * a31 - a21 * b3)) / det3
     x1 = (a00 * (b2 * a34 - a24 * b3) - b0 * c1 + a04 * (a20 * b3 - b2 * a30)) / det3
     x4 = (a00 * (a21 * b3 - b2 * a31) - a01 * (a20 * b3 - b2 * a30) + b0 * c2) / det3
     # 2x2: [[a12 a13], [a42 a43]] [pwdd, pfdd] = [b1 - a11 phdd, b4 - a41 phdd]
     det2 = a12 * a43 - a13 * a42
     if det2 == 0.0:
-        return [math.nan] * 5
+        return _NAN5
     r1, r4 = b1 - a11 * x1, b4 - a41 * x1
     x2 = (r1 * a43 - a13 * r4) / det2
     x3 = (a12 * r4 - r1 * a42) / det2
-    return [x0, x1, x2, x3, x4]
+    return x0, x1, x2, x3, x4
+
+
+_NAN5 = (math.nan,) * 5
+
+
+def _solve_accelerations(A: list[list[float]], b: list[float]) -> list[float]:
+    """``A^{-1} b`` for a dense 5x5 ``A`` of the unicycle's sparsity pattern (:func:`_solve_blocks`)."""
+    (a00, a01, _, _, a04), (_, a11, a12, a13, _), (a20, a21, _, _, a24), (a30, a31, _, _, a34), \
+        (_, a41, a42, a43, _) = A
+    return list(_solve_blocks(a00, a01, a04, a11, a12, a13, a20, a21, a24, a30, a31, a34, a41, a42, a43, *b))
 
 
 def unicycle_rhs(z: Sequence[float], u: Sequence[float], p: UnicycleParams) -> tuple[float, ...]:
     """dz/dt of the 12 ODE states for torques ``u = [u_t, u_w]`` (Nm); 12 floats in, 12 out."""
-    A, b = unicycle_matrices(z, u, p)
-    acc = _solve_accelerations(A, b)
+    acc = _solve_blocks(*unicycle_system(p)(z[0], z[1], z[2], z[3], z[4], z[7], z[10], u[0], u[1]))
     phi, pwd = z[8], z[2]
     return (
         -acc[0], -acc[1], -acc[2], -acc[3], -acc[4],
         p.r_w * math.cos(phi) * pwd, p.r_w * math.sin(phi) * pwd,
         z[0], z[1], z[2], z[3], z[4],
     )
+
+
+def _falling_derivative(p: UnicycleParams, fall_angle: float) -> Callable[..., tuple[float, ...]]:
+    """``deriv(thd, phd, pwd, pfd, ptd, theta, phi, psi_f, u_t, u_w) -> dz/dt`` (12 floats) with the fall
+    region absorbing: the right-hand side of :func:`falling_rhs` on the eight state entries it reads."""
+    system, r_w, cos, sin = unicycle_system(p), p.r_w, math.cos, math.sin
+
+    def deriv(thd: float, phd: float, pwd: float, pfd: float, ptd: float, th: float, phi: float, pf: float,
+              V: float, U: float) -> tuple[float, ...]:
+        if abs(th) > fall_angle or abs(pf) > fall_angle:
+            return _FROZEN
+        x0, x1, x2, x3, x4 = _solve_blocks(*system(thd, phd, pwd, pfd, ptd, th, pf, V, U))
+        return (-x0, -x1, -x2, -x3, -x4, r_w * cos(phi) * pwd, r_w * sin(phi) * pwd, thd, phd, pwd, pfd, ptd)
+
+    return deriv
+
+
+def falling_rhs(p: UnicycleParams, fall_angle: float) -> RightHandSide:
+    """The task's right-hand side: :func:`unicycle_rhs`, with the fall region made absorbing.
+
+    Where ``|theta| > fall_angle`` or ``|psi_f| > fall_angle`` (fallen; the task uses pi/2) the
+    derivative is zero. The episode ends there anyway; freezing the state keeps RK4 from stepping
+    through the singularity of ``A`` at ``|theta| = pi/2`` (where it diverges), and a fall in the
+    middle of a control step is not undone by the end of the step (in Euler angles, a unicycle that
+    passes ``theta = pi/2`` comes back with ``theta`` below ``pi/2`` and yaw turned by ``pi``).
+    Elsewhere the same floats as :func:`unicycle_rhs`.
+    """
+    deriv = _falling_derivative(p, fall_angle)
+
+    def rhs(z: Sequence[float], u: Sequence[float]) -> tuple[float, ...]:
+        return deriv(z[0], z[1], z[2], z[3], z[4], z[7], z[8], z[10], u[0], u[1])
+
+    return rhs
+
+
+def unicycle_stepper(p: UnicycleParams, fall_angle: float) -> Stepper:
+    """``step(z, u, dt, substeps)``: ``rk4_zoh(falling_rhs(p, fall_angle), z, u, dt, substeps)`` on scalars.
+
+    The same arithmetic as :func:`tasks.simulation.rk4_zoh` (bit-identical results) without the
+    per-stage lists: the right-hand side reads only the five rates and ``theta, phi, psi_f``, so
+    only those enter the stage states; all 12 entries get the RK4 update. ``z``: the 12 ODE
+    states (units in the module docstring); ``u = [u_t, u_w]`` (Nm); ``dt`` in s. Returns 12 floats.
+    """
+    deriv = _falling_derivative(p, fall_angle)
+
+    def step(z: Sequence[float], u: Sequence[float], dt: float, substeps: int) -> list[float]:
+        thd, phd, pwd, pfd, ptd, x, y, th, phi, psw, pf, pst = map(float, z)
+        V, U = float(u[0]), float(u[1])
+        h = dt / substeps
+        half, sixth = 0.5 * h, h / 6.0
+        for _ in range(substeps):
+            # k1 = a, k2 = b, k3 = c, k4 = d: (5 accelerations, xdot, ydot, 5 angle rates) each
+            a0, a1, a2, a3, a4, a5, a6, a7, a8, a9, a10, a11 = deriv(thd, phd, pwd, pfd, ptd, th, phi, pf, V, U)
+            b0, b1, b2, b3, b4, b5, b6, b7, b8, b9, b10, b11 = deriv(
+                thd + half * a0, phd + half * a1, pwd + half * a2, pfd + half * a3, ptd + half * a4,
+                th + half * a7, phi + half * a8, pf + half * a10, V, U)
+            c0, c1, c2, c3, c4, c5, c6, c7, c8, c9, c10, c11 = deriv(
+                thd + half * b0, phd + half * b1, pwd + half * b2, pfd + half * b3, ptd + half * b4,
+                th + half * b7, phi + half * b8, pf + half * b10, V, U)
+            d0, d1, d2, d3, d4, d5, d6, d7, d8, d9, d10, d11 = deriv(
+                thd + h * c0, phd + h * c1, pwd + h * c2, pfd + h * c3, ptd + h * c4,
+                th + h * c7, phi + h * c8, pf + h * c10, V, U)
+            thd, phd, pwd, pfd, ptd, x, y, th, phi, psw, pf, pst = (
+                thd + sixth * (a0 + 2.0 * (b0 + c0) + d0),
+                phd + sixth * (a1 + 2.0 * (b1 + c1) + d1),
+                pwd + sixth * (a2 + 2.0 * (b2 + c2) + d2),
+                pfd + sixth * (a3 + 2.0 * (b3 + c3) + d3),
+                ptd + sixth * (a4 + 2.0 * (b4 + c4) + d4),
+                x + sixth * (a5 + 2.0 * (b5 + c5) + d5),
+                y + sixth * (a6 + 2.0 * (b6 + c6) + d6),
+                th + sixth * (a7 + 2.0 * (b7 + c7) + d7),
+                phi + sixth * (a8 + 2.0 * (b8 + c8) + d8),
+                psw + sixth * (a9 + 2.0 * (b9 + c9) + d9),
+                pf + sixth * (a10 + 2.0 * (b10 + c10) + d10),
+                pst + sixth * (a11 + 2.0 * (b11 + c11) + d11),
+            )
+        return [thd, phd, pwd, pfd, ptd, x, y, th, phi, psw, pf, pst]
+
+    return step
+
+
+_FROZEN = (0.0,) * 12
 
 
 def observation_from_physical(z: np.ndarray) -> np.ndarray:
@@ -435,9 +569,6 @@ class UnicycleEnv(OdeEnv):
         return super().reset(options={**(options or {}), "state": observation_from_physical(z0)})
 
 
-_FROZEN = (0.0,) * 12
-
-
 class Unicycle(Task):
     """Robotic unicycle balancing (PILCO, ICML 2011 §5; reference implementation ``scenarios/unicycle``).
 
@@ -445,7 +576,7 @@ class Unicycle(Task):
     theta, phi, psi_f]`` (see the module docstring); controls ``[u_t, u_w]`` = turntable and wheel
     torques, ``|u_t| <= 10``, ``|u_w| <= 50`` Nm; ``dt = 0.15`` s, 67 steps (10 s). The episode
     terminates when the unicycle falls: ``|theta| > pi/2`` or ``|psi_f| > pi/2`` (the reference's
-    constraint); in the simulation the fall region is absorbing (:meth:`rhs`). A fall passes close
+    constraint); in the simulation the fall region is absorbing (:func:`falling_rhs`). A fall passes close
     to the singularity of ``A``, so about 1 % of the terminal states carry rates above 100 rad/s
     (measured with uniformly random torques from the ``paper`` start); the reference drops the
     transition that violates the constraint from its training data.
@@ -490,6 +621,10 @@ class Unicycle(Task):
         super().__init__(**options)
         self.params = UnicycleParams()
         self.init_mean12, self.init_cov12 = initial_distribution(self.options["init"])
+        #: ``f(z, u) -> dz/dt``: :func:`unicycle_rhs` with the fall region absorbing (:func:`falling_rhs`).
+        self.rhs = falling_rhs(self.params, self.fall_angle)
+        #: the env's integrator: :func:`unicycle_stepper`, the same steps as ``rk4_zoh(self.rhs, ...)``.
+        self.stepper = unicycle_stepper(self.params, self.fall_angle)
         self._spec = self._build_spec()
 
     def _build_spec(self) -> TaskSpec:
@@ -516,19 +651,6 @@ class Unicycle(Task):
     def spec(self) -> TaskSpec:
         return self._spec
 
-    def rhs(self, z: Sequence[float], u: Sequence[float]) -> tuple[float, ...]:
-        """The task's right-hand side: :func:`unicycle_rhs`, with the fall region made absorbing.
-
-        Where ``|theta| > pi/2`` or ``|psi_f| > pi/2`` (fallen) the derivative is zero. The
-        episode ends there anyway; freezing the state keeps RK4 from stepping through the
-        singularity of ``A`` at ``|theta| = pi/2`` (where it diverges), and a fall in the middle
-        of a control step is not undone by the end of the step (in Euler angles, a unicycle that
-        passes ``theta = pi/2`` comes back with ``theta`` below ``pi/2`` and yaw turned by ``pi``).
-        """
-        if abs(z[7]) > self.fall_angle or abs(z[10]) > self.fall_angle:
-            return _FROZEN
-        return unicycle_rhs(z, u, self.params)
-
     def fallen(self, state: np.ndarray) -> bool:
         """``|theta| > pi/2`` or ``|psi_f| > pi/2`` for an observation-coordinate state ``(10,)``."""
         return bool(abs(state[7]) > self.fall_angle or abs(state[9]) > self.fall_angle)
@@ -539,6 +661,7 @@ class Unicycle(Task):
             self.init_mean12,
             self.init_cov12,
             rhs=self.rhs,
+            stepper=self.stepper,
             substeps=self.options["substeps"],
             left_region=self.fallen,
             draw=self.draw,

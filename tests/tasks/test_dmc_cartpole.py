@@ -23,6 +23,7 @@ from tasks.dmc_cartpole import (  # noqa: E402
     DMCCartpole,
     pole_tip,
     swingup_observation_moments,
+    swingup_reward,
 )
 
 
@@ -149,6 +150,50 @@ def test_dmc_reward_is_the_suite_reward_summed_over_the_repeat():
             assert 0.0 <= info["dmc_reward"] <= 4.0
     finally:
         environment.close()
+
+
+def test_direct_mujoco_stepping_equals_dm_control_over_200_steps():
+    """The env steps MuJoCo directly; dm_control's own Environment.step is the reference.
+
+    Same seed, same 200 random actions (action repeat 10): the observations (qpos, qvel, xmat
+    entries) are bit-identical and the summed suite rewards agree to 1e-12.
+    """
+    from dm_control import suite
+
+    environment = DMCCartpole(horizon=200).make_env(measurement_noise=False)
+    reference = suite.load("cartpole", "swingup", task_kwargs={"random": 11, "time_limit": float("inf")})
+    try:
+        obs, _ = environment.reset(seed=11)
+        ref_obs = reference.reset().observation
+        np.testing.assert_array_equal(obs, np.r_[ref_obs["position"], ref_obs["velocity"]])
+        rng = np.random.default_rng(11)
+        worst_reward = 0.0
+        for _ in range(200):
+            u = rng.uniform(-1.2, 1.2, 1)  # some beyond the bounds: both paths clip to [-1, 1]
+            obs, _, _, _, info = environment.step(u)
+            steps = [reference.step(np.clip(u, -1.0, 1.0)) for _ in range(10)]
+            ref_obs = steps[-1].observation
+            np.testing.assert_array_equal(obs, np.r_[ref_obs["position"], ref_obs["velocity"]])
+            worst_reward = max(worst_reward, abs(info["dmc_reward"] - sum(t.reward for t in steps)))
+        assert worst_reward < 1e-12
+        assert environment.physics.data.time == pytest.approx(reference.physics.data.time, abs=1e-12)
+    finally:
+        environment.close()
+        reference.close()
+
+
+def test_swingup_reward_equals_the_suite_reward_function(env):
+    """swingup_reward on floats against dm_control's Balance._get_reward on the same physics state."""
+    rng = np.random.default_rng(12)
+    physics, task = env.physics, env._dm_env.task
+    cases = [(0.0, np.pi, 0.0, 0.0), (0.3, 0.2, 1.0, -7.0), (-2.0, 3.0, -1.0, 5.0)]
+    cases += [(rng.uniform(-3, 3), rng.uniform(-np.pi, np.pi), rng.uniform(-1, 1), rng.normal(0, 5)) for _ in range(50)]
+    for x, th, u, thd in cases:
+        set_state(physics, [x, th], [rng.normal(), thd])
+        physics.set_control([u])
+        expected = task.get_reward(physics)
+        got = swingup_reward(x, float(physics.named.data.xmat["pole_1", "zz"]), u, thd)
+        assert got == pytest.approx(expected, abs=1e-15)
 
 
 def test_dt_is_action_repeat_times_physics_step():

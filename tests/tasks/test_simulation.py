@@ -12,6 +12,7 @@ from harness.task import SaturatingCost, TaskSpec
 from tasks.cartpole import CartPole
 from tasks.double_pendulum import CartDoublePendulum
 from tasks.simulation import OdeEnv, reference_step, rk4_zoh
+from tasks.unicycle import Unicycle
 
 
 def oscillator(z, u):
@@ -149,3 +150,28 @@ def test_noise_switch_and_render_modes():
         OdeEnv(spec, oscillator, substeps=5, render_mode="human")
     with pytest.raises(ValueError):
         OdeEnv(spec, oscillator, substeps=5, render_mode="rgb_array")  # no drawing function
+
+
+@pytest.mark.parametrize(
+    "task,low,high",
+    [
+        (CartPole(), [-2, -5, -15, -7], [2, 5, 15, 7]),
+        (CartDoublePendulum(), [-2, -5, -15, -15, -7, -7], [2, 5, 15, 15, 7, 7]),
+        (Unicycle(), [-3] * 5 + [-2, -2, -1.7, -4, -9, -1.7, -9], [3] * 5 + [2, 2, 1.7, 4, 9, 1.7, 9]),
+    ],
+    ids=["cartpole", "double-pendulum", "unicycle"],
+)
+def test_fused_stepper_is_bit_identical_to_rk4_zoh_of_the_rhs(task, low, high):
+    """The env's fused stepper performs rk4_zoh's arithmetic: equal floats, not just close ones.
+
+    (Unicycle: angles up to 1.7 rad, so some steps start or pass through the absorbing fall region.)"""
+    rng = np.random.default_rng(9)
+    spec = task.spec
+    for substeps in (1, 3, task.options["substeps"]):
+        for _ in range(100):
+            z = rng.uniform(low, high).tolist()
+            u = rng.uniform(1.5 * spec.action_low, 1.5 * spec.action_high).tolist()
+            fused, generic = task.stepper(z, u, spec.dt, substeps), rk4_zoh(task.rhs, z, u, spec.dt, substeps)
+            assert np.array_equal(fused, generic, equal_nan=True)
+    env = task.make_env()
+    assert env._stepper is task.stepper
