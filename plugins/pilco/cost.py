@@ -24,6 +24,7 @@ import math
 
 import torch
 
+from harness.errors import NumericalError
 from harness.task import SaturatingCost
 from plugins.pilco.trig import augment_trig
 
@@ -38,7 +39,13 @@ def gaussian_saturation(m_r: torch.Tensor, S_r: torch.Tensor, width: float) -> t
 
     def expected_gauss(scale2: float) -> torch.Tensor:
         # E[exp(-|r|^2 / (2 scale2))] = |I + S_r/scale2|^-1/2 exp(-1/2 m^T (S_r + scale2 I)^-1 m)
-        chol = torch.linalg.cholesky(S_r + scale2 * eye)
+        chol, info = torch.linalg.cholesky_ex(S_r + scale2 * eye)
+        if bool((info != 0).any()):
+            bad = torch.nonzero(info.reshape(-1)).reshape(-1).tolist()
+            raise NumericalError(
+                f"the predicted cost's covariance is not positive definite at prediction step(s) {bad[:5]} "
+                "(the propagated state distribution degenerated; the policy search treats this point as +inf)"
+            )
         half_logdet = torch.log(torch.diagonal(chol, dim1=-2, dim2=-1)).sum(-1) - 0.5 * p * math.log(scale2)
         y = torch.linalg.solve_triangular(chol, m_r[..., None], upper=False).squeeze(-1)
         return torch.exp(-half_logdet - 0.5 * (y * y).sum(-1))

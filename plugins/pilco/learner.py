@@ -21,6 +21,7 @@ from __future__ import annotations
 
 import copy
 import json
+import math
 import shutil
 import tempfile
 import time
@@ -242,7 +243,7 @@ class Pilco(Learner):
             while True:
                 if trial > 0:  # apply the policy handed over last for one trial, record the data
                     episode = interaction.rollout(PilcoPolicy(controller, self.layout))
-                    if o["plots"]:
+                    if o["plots"] and predicted is not None:
                         self.artifacts.append(self._plot_prediction(predicted, episode, workdir / f"prediction_trial{trial:03d}.png", trial))
                 trial += 1
                 x, y = transitions(interaction.episodes, self.layout)
@@ -260,7 +261,10 @@ class Pilco(Learner):
                 except NumericalError:
                     objective.set_flat(previous)  # keep the previous policy, say so in the metrics
                     search, failed = None, 1.0
-                predicted = objective.predicted_costs()
+                try:
+                    predicted = objective.predicted_costs()
+                except NumericalError:  # the kept policy's prediction degenerated: no plot, say so
+                    predicted = None
                 self.metrics = self._trial_metrics(fit, search, failed, predicted, objective.num_params)
                 self.artifacts += self._save_model(workdir, trial, model, fit)
                 if trial == 1:
@@ -297,7 +301,8 @@ class Pilco(Learner):
             "gp_nll": fit.nll,
             "model_train_seconds": fit.seconds,
             "policy_search_failed": failed,
-            "predicted_cost": float(predicted[0].sum()),
+            "predicted_cost": float(predicted[0].sum()) if predicted is not None else math.nan,
+            "prediction_failed": float(predicted is None),
             "policy_parameters": float(num_params),
         }
         if search is not None:

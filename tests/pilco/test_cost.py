@@ -113,3 +113,18 @@ def test_batched_and_width_override() -> None:
     for i, (m, S) in enumerate(pairs):
         e, v = ref(m, S)
         assert torch.allclose(eb[i], e, atol=1e-15) and torch.allclose(vb[i], v, atol=1e-15)
+
+
+def test_degenerate_covariance_is_a_numerical_error_naming_the_step() -> None:
+    """A propagated covariance that lost definiteness (or became NaN) raises the harness's
+    NumericalError, which the policy search counts as +inf, instead of a bare LinAlgError."""
+    from harness.errors import NumericalError
+
+    m = torch.zeros(3, 2, dtype=torch.float64)
+    S = torch.eye(2, dtype=torch.float64).repeat(3, 1, 1) * 0.01
+    S[2, 0, 0] = -1.0
+    with pytest.raises(NumericalError, match=r"prediction step\(s\) \[2\]"):
+        gaussian_saturation(m, S, 0.25)
+    S[2, 0, 0] = float("nan")
+    with pytest.raises(NumericalError):
+        gaussian_saturation(m, S, 0.25)
