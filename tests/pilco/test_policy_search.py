@@ -60,3 +60,41 @@ def test_a_broken_start_is_a_numerical_error_and_keeps_the_policy():
     with pytest.raises(NumericalError, match="not finite at the starting policy"):
         optimise_policy(objective)
     np.testing.assert_array_equal(objective.get_flat(), [0.5])
+
+
+class TrustRegion(Quadratic):
+    """Fails (like a degenerate propagation) farther than ``radius`` from the start."""
+
+    def __init__(self, target, radius):
+        super().__init__(target)
+        self.radius = radius
+
+    def value_and_grad(self, theta):
+        if np.linalg.norm(theta) > self.radius:
+            self.calls += 1
+            raise torch.linalg.LinAlgError("linalg.cholesky: not positive-definite")
+        return super().value_and_grad(theta)
+
+
+def test_a_line_search_broken_by_failed_points_restarts_with_a_shorter_first_step():
+    """scipy's first step has unit length and lands beyond the region where J exists; its line
+    search then stops abnormally. The restart shrinks the step and makes progress to the boundary."""
+    objective = TrustRegion([3.0, 4.0], radius=0.5)  # the target is at distance 5, unreachable
+    result = optimise_policy(objective, max_iterations=100, max_evaluations=200)
+    assert result.restarts >= 1 and result.failed_evaluations >= 1
+    # the best point lies (nearly) at the boundary towards the target: J = (5 - 0.5)^2 = 20.25 at best
+    assert result.J_after < 21.0 and result.J_before == pytest.approx(25.0)
+    np.testing.assert_allclose(result.theta / np.linalg.norm(result.theta), [0.6, 0.8], atol=0.02)
+
+
+def test_without_failures_it_is_exactly_one_scipy_run():
+    import scipy.optimize
+
+    target = np.array([1.0, -2.0, 0.5, 3.0])
+    objective = Quadratic(target)
+    result = optimise_policy(objective, max_iterations=3, max_evaluations=100)
+    reference = scipy.optimize.minimize(lambda t: Quadratic(target).value_and_grad(t), np.zeros(4), jac=True, method="L-BFGS-B",
+                                        options={"maxiter": 3, "maxfun": 100})
+    assert result.restarts == 0 and result.iterations == reference.nit
+    assert result.evaluations == reference.nfev + 1  # + the initial J evaluation
+    np.testing.assert_array_equal(result.theta, reference.x)
