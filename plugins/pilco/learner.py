@@ -263,7 +263,7 @@ class Pilco(Learner):
                     search, failed = None, 1.0
                 try:
                     predicted = objective.predicted_costs()
-                except NumericalError:  # the kept policy's prediction degenerated: no plot, say so
+                except (NumericalError, torch.linalg.LinAlgError):  # the kept policy's prediction degenerated: no plot, say so
                     predicted = None
                 self.metrics = self._trial_metrics(fit, search, failed, predicted, objective.num_params)
                 self.artifacts += self._save_model(workdir, trial, model, fit)

@@ -9,6 +9,7 @@ import pytest
 import torch
 
 from harness.discovery import load_learner
+from harness.errors import NumericalError
 from harness.runner import RunConfig, run
 from harness.testing import LearnerConformance
 from harness.tracking import MemoryTracker
@@ -86,3 +87,24 @@ def test_same_seed_gives_identical_metrics():
     assert strip(a.history) == strip(b.history)
     c = run(RunConfig("pilco", "cartpole", seed=4, learner_options=TINY, task_options={"horizon": 10}, max_trials=2, eval_episodes=2))
     assert strip(c.history) != strip(a.history)
+
+
+@pytest.mark.parametrize("error", [torch.linalg.LinAlgError, NumericalError])
+def test_a_degenerate_prediction_does_not_end_the_run(monkeypatch, error):
+    """The kept policy's predicted cost can fail (propagated covariance no longer definite): the
+    trial is still handed over, without the plot, and ``prediction_failed`` says so."""
+    from plugins.pilco.objective import PolicyObjective
+
+    def broken(self):
+        raise error("linalg.cholesky: the input is not positive-definite")
+
+    monkeypatch.setattr(PolicyObjective, "predicted_costs", broken)
+    tracker = MemoryTracker()
+    result = run(
+        RunConfig("pilco", "cartpole", seed=0, learner_options=TINY, task_options={"horizon": 10}, max_trials=2, eval_episodes=1),
+        tracker=tracker,
+    )
+    assert result.trials == 2 and tracker.status == "FINISHED"
+    assert dict(tracker.metrics["prediction_failed"]) == {1: 1.0, 2: 1.0}
+    assert "predicted_cost" not in tracker.metrics
+    assert not any(p.name.startswith("prediction_trial") for p, _ in tracker.artifacts)
