@@ -7,6 +7,7 @@ numbers behind a picture can be checked without reading pixels.
 from __future__ import annotations
 
 import math
+import textwrap
 import warnings
 from collections.abc import Sequence
 from pathlib import Path
@@ -92,7 +93,7 @@ def plot_fig5(rows: Sequence[dict[str, Any]], path: Path, task: str) -> Path:
     triangles at that interaction.
     """
     plt = _plt()
-    fig, ax = plt.subplots(figsize=(max(5.0, 0.9 * len(rows) + 2.0), 4.2), dpi=120)
+    fig, ax = plt.subplots(figsize=(max(5.0, 1.25 * len(rows) + 2.0), 4.8), dpi=120)
     finite = [v for r in rows for v in (r["median_s"], r["solved_max_s"], r["censored_at_s"]) if isinstance(v, float) and math.isfinite(v)]
     top = max(finite) if finite else 1.0
     for i, r in enumerate(rows):
@@ -119,7 +120,8 @@ def plot_fig5(rows: Sequence[dict[str, Any]], path: Path, task: str) -> Path:
     values = [v for r in rows for v in (r["median_s"], r["q25_s"], r["solved_min_s"], r["censored_at_s"]) if isinstance(v, float) and math.isfinite(v) and v > 0]
     y_low, y_high = min(values, default=1.0) / 3, top * 4
     ax.set_ylim(y_low, y_high)
-    labels = [f"{r['label']}\n{_median_text(r)}" + (f"\n{r['solved']}/{r['runs']} solved" if r["kind"] == "ours" else "") for r in rows]
+    labels = [textwrap.fill(str(r["label"]), 14) + f"\n{_median_text(r)}" + (f"\n{r['solved']}/{r['runs']} solved" if r["kind"] == "ours" else "")
+              for r in rows]
     ax.set_xlim(-0.7, max(len(rows), 2) - 0.3)
     ax.set_xticks(range(len(rows)), labels, fontsize=8)
     ax.set_yscale("log")

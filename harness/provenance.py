@@ -10,15 +10,22 @@ from pathlib import Path
 TRACKED_PACKAGES = ("pilco-harness", "torch", "numpy", "scipy", "gymnasium", "mlflow", "stable-baselines3", "dm-control", "mujoco")
 
 
+#: changes under these top-level folders do not make the source "dirty" (the committed results
+#: store is written by the runs themselves)
+NOT_SOURCE = ("results/",)
+
+
 def git_sha(directory: Path | None = None) -> str:
-    """Commit of the harness source tree (``+dirty`` if it has uncommitted changes), or ``unknown``."""
+    """Commit of the harness source tree (``+dirty`` if it has uncommitted changes outside
+    :data:`NOT_SOURCE`), or ``unknown``."""
     where = directory or Path(__file__).resolve().parent
     try:
         sha = subprocess.run(["git", "rev-parse", "HEAD"], cwd=where, capture_output=True, text=True, timeout=5, check=True).stdout.strip()
-        dirty = subprocess.run(["git", "status", "--porcelain", "--untracked-files=no"], cwd=where, capture_output=True, text=True, timeout=5).stdout.strip()
+        status = subprocess.run(["git", "status", "--porcelain", "--untracked-files=no"], cwd=where, capture_output=True, text=True, timeout=5).stdout
     except (OSError, subprocess.SubprocessError):
         return "unknown"
-    return sha + ("+dirty" if dirty else "")
+    changed = [line[3:] for line in status.splitlines() if line.strip()]  # "XY path"
+    return sha + ("+dirty" if any(not path.startswith(NOT_SOURCE) for path in changed) else "")
 
 
 def package_versions() -> dict[str, str]:
