@@ -27,7 +27,8 @@ Large variances: the covariance is evaluated as
 ``Vy_ii`` exceeds ~745 (``e_i e_j`` underflows, ``expm1`` overflows at ~710): with the trapezoid
 squashing ``Vy`` holds ``9 var[z]``, so a control pre-image variance above ~80 made the control
 covariance ``nan`` and the GP's Cholesky then failed ("leading minor of order 1 is not
-positive-definite") during policy search on the unicycle. Every factor used here is bounded by 1
+positive-definite") during policy search on the unicycle; angle variances above ~710 did the same
+to ``[sin, cos]`` of the angles (the RBF policy's Cholesky on the cart-double-pendulum). Every factor used here is bounded by 1
 for a positive semi-definite ``Vy`` (``|Vy_ij| <= (Vy_ii + Vy_jj) / 2``).
 """
 
