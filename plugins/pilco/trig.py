@@ -19,6 +19,17 @@ Squashing of a control ``z`` to ``[-u_max, u_max]`` (reference ``gSat``)::
     "sin":        u = u_max sin z
 
 with exact moments via the augmented Gaussian ``[z; 3z]``.
+
+Large variances: the covariance is evaluated as
+``1/2 [exp(l_ij) expm1(Vy_ij) cos(mu_i - mu_j) - exp(l_ij) expm1(-Vy_ij) cos(mu_i + mu_j)]`` with
+``l_ij = -(Vy_ii + Vy_jj) / 2`` and each ``exp(l) expm1(v)`` formed without overflow
+(:func:`_scaled_expm1`). The textbook product ``e_i e_j expm1(Vy_ij)`` is ``0 * inf = nan`` once
+``Vy_ii`` exceeds ~745 (``e_i e_j`` underflows, ``expm1`` overflows at ~710): with the trapezoid
+squashing ``Vy`` holds ``9 var[z]``, so a control pre-image variance above ~80 made the control
+covariance ``nan`` and the GP's Cholesky then failed ("leading minor of order 1 is not
+positive-definite") during policy search on the unicycle; angle variances above ~710 did the same
+to ``[sin, cos]`` of the angles (the RBF policy's Cholesky on the cart-double-pendulum). Every factor used here is bounded by 1
+for a positive semi-definite ``Vy`` (``|Vy_ij| <= (Vy_ii + Vy_jj) / 2``).
 """
 
 from __future__ import annotations
@@ -31,23 +42,46 @@ import torch
 SQUASH_KINDS = ("trapezoid", "sin")
 
 
+def _scaled_expm1(log_scale: torch.Tensor, v: torch.Tensor) -> torch.Tensor:
+    """``exp(log_scale) * expm1(v)`` without overflow: ``exp(log_scale + v) * -expm1(-v)`` for
+    ``v > 0`` (finite while ``log_scale + v <= 0``, as for the sine covariances), else the plain
+    product. Equal to the plain product to rounding; exact in relative terms for small ``|v|``.
+    Both branches are finite everywhere, so autograd through ``torch.where`` stays finite."""
+    positive = v > 0
+    up = torch.exp(log_scale + v.clamp(min=0.0)) * -torch.expm1(-v.clamp(min=0.0))
+    down = torch.exp(log_scale) * torch.expm1(v.clamp(max=0.0))
+    return torch.where(positive, up, down)
+
+
 def _sin_forward(m, S, A, b):
-    """The arithmetic of :func:`sin_moments`; returns the moments and the intermediates."""
+    """The arithmetic of :func:`sin_moments`; returns the moments and the intermediates.
+
+    With ``l_ij = log(e_i e_j) = -(vy_ii + vy_jj) / 2`` (all four ``(K, K)`` factors are bounded
+    by 1/2 in magnitude for a positive semi-definite ``vy``; see the module docstring)::
+
+        P = e_i e_j expm1(vy_ij) / 2,   N = e_i e_j expm1(-vy_ij) / 2,
+        Ep = e_i e_j exp(vy_ij) / 2,    En = e_i e_j exp(-vy_ij) / 2,
+        cov = P cos(mu_i - mu_j) - N cos(mu_i + mu_j).
+    """
     mu = m @ A.T
     if b is not None:
         mu = mu + b
     vy = A @ S @ A.T  # (..., K, K)
-    e = torch.exp(-0.5 * torch.diagonal(vy, dim1=-2, dim2=-1))  # (..., K)
+    half_v = 0.5 * torch.diagonal(vy, dim1=-2, dim2=-1)  # (..., K)
+    e = torch.exp(-half_v)  # (..., K)
     s, c = torch.sin(mu), torch.cos(mu)
     diff = mu[..., :, None] - mu[..., None, :]
     summ = mu[..., :, None] + mu[..., None, :]
     cos_d, cos_s = torch.cos(diff), torch.cos(summ)
-    pos, neg = torch.expm1(vy), torch.expm1(-vy)
-    half_ee = 0.5 * e[..., :, None] * e[..., None, :]
-    inner = pos * cos_d - neg * cos_s
+    log_ee = -(half_v[..., :, None] + half_v[..., None, :])  # (..., K, K)
+    P = 0.5 * _scaled_expm1(log_ee, vy)
+    N = 0.5 * _scaled_expm1(log_ee, -vy)
+    Ep = 0.5 * torch.exp(log_ee + vy)
+    En = 0.5 * torch.exp(log_ee - vy)
+    cov = P * cos_d - N * cos_s
     ec = e * c
-    moments = (e * s, half_ee * inner, A.T * ec[..., None, :])
-    return moments, (s, c, e, diff, summ, cos_d, cos_s, pos, neg, half_ee, inner)
+    moments = (e * s, cov, A.T * ec[..., None, :])
+    return moments, (s, c, e, diff, summ, cos_d, cos_s, P, N, Ep, En, cov)
 
 
 def _sin_backward(A, saved, g_mean, g_cov, g_cross, need_m=True, need_S=True):
@@ -56,28 +90,28 @@ def _sin_backward(A, saved, g_mean, g_cov, g_cross, need_m=True, need_S=True):
     ``saved``: the intermediates from :func:`_sin_forward`; ``g_*``: gradients wrt the three
     moments (``None`` for zero). Returns ``(g_m, g_S)`` (``None`` where not needed).
     """
-    s, c, e, diff, summ, cos_d, cos_s, pos, neg, half_ee, inner = saved
-    g_e = torch.zeros_like(e)
+    s, c, e, diff, summ, cos_d, cos_s, P, N, Ep, En, cov = saved
+    # gradients wrt mu, log e (= -vy_ii / 2) and vy; log e rather than e keeps every product finite
+    g_loge = torch.zeros_like(e)
     g_mu = torch.zeros_like(e)
-    g_vy = torch.zeros_like(inner)
+    g_vy = torch.zeros_like(cov)
     if g_cov is not None:
         # cov_ij = 1/2 e_i e_j [expm1(v_ij) cos(mu_i - mu_j) - expm1(-v_ij) cos(mu_i + mu_j)]
-        gh = g_cov * half_ee
-        g_vy = gh * ((pos + 1.0) * cos_d + (neg + 1.0) * cos_s)
-        p_sd = pos * torch.sin(diff)
-        n_ss = neg * torch.sin(summ)
-        g_mu = (gh * (n_ss - p_sd)).sum(-1) + (gh * (n_ss + p_sd)).sum(-2)
-        gi = 0.5 * g_cov * inner
-        g_e = (gi * e[..., None, :]).sum(-1) + (gi * e[..., :, None]).sum(-2)
+        g_vy = g_cov * (Ep * cos_d + En * cos_s)
+        n_ss = N * torch.sin(summ)
+        p_sd = P * torch.sin(diff)
+        g_mu = (g_cov * (n_ss - p_sd)).sum(-1) + (g_cov * (n_ss + p_sd)).sum(-2)
+        gc = g_cov * cov  # cov_ij is proportional to e_i e_j
+        g_loge = gc.sum(-1) + gc.sum(-2)
     if g_mean is not None:  # mean = e sin mu
-        g_e = g_e + g_mean * s
+        g_loge = g_loge + g_mean * e * s
         g_mu = g_mu + g_mean * e * c
     if g_cross is not None:  # cross = A^T diag(e cos mu)
         g_ec = (g_cross * A.T).sum(-2)
-        g_e = g_e + g_ec * c
+        g_loge = g_loge + g_ec * e * c
         g_mu = g_mu - g_ec * e * s
-    # e = exp(-vy_ii / 2),  vy = A S A^T,  mu = A m + b
-    g_vy = g_vy - torch.diag_embed(0.5 * e * g_e)
+    # log e = -vy_ii / 2,  vy = A S A^T,  mu = A m + b
+    g_vy = g_vy - torch.diag_embed(0.5 * g_loge)
     g_S = A.T @ g_vy @ A if need_S else None
     g_m = g_mu @ A if need_m else None
     return g_m, g_S
