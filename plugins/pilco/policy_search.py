@@ -103,7 +103,7 @@ def optimise_policy(objective: PolicyObjective, max_iterations: int = 150, max_e
             # line search does not back off from +inf (it reports an abnormal stop, or even
             # "convergence" with the zero gradient we return there)
             broke_down = res.status != 1 and counts["failed"] > failed_before
-            budget_left = iterations < max_iterations and counts["evaluations"] - 1 < max_evaluations - 1
+            budget_left = iterations < max_iterations and counts["evaluations"] < max_evaluations
             if not (broke_down and budget_left and restarts < MAX_RESTARTS):
                 break
             restarts += 1

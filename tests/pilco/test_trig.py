@@ -106,6 +106,18 @@ def test_squash_bounds_and_shape() -> None:
         squash(z, u_max, "tanh")
 
 
+def sin_gradients(m, S, A, b, weights):
+    """Gradients wrt ``(m, S)`` of ``sum(w * moment)`` over the sin moments, by the hand-derived
+    backward and by autograd through the forward: ``zip(hand, autograd)`` pairs."""
+    results = []
+    for hand in (True, False):
+        mm, SS = m.clone().requires_grad_(), S.clone().requires_grad_()
+        out = sin_moments(mm, SS, A, b) if hand else _sin_forward(mm, SS, A, b)[0]
+        loss = sum((o * w).sum() for o, w in zip(out, weights))
+        results.append(torch.autograd.grad(loss, (mm, SS)))
+    return zip(*results)
+
+
 @pytest.mark.parametrize("batch", [(), (3,)])
 def test_hand_derived_backward_equals_autograd(batch) -> None:
     gen = torch.Generator().manual_seed(6)
@@ -115,13 +127,7 @@ def test_hand_derived_backward_equals_autograd(batch) -> None:
     S = L @ L.mT
     m = torch.randn(*batch, 3, generator=gen, dtype=DT)
     weights = [torch.randn(*batch, *shape, generator=gen, dtype=DT) for shape in ((3,), (3, 3), (3, 3))]
-    results = []
-    for hand in (True, False):
-        mm, SS = m.clone().requires_grad_(), S.clone().requires_grad_()
-        out = sin_moments(mm, SS, A, b) if hand else _sin_forward(mm, SS, A, b)[0]
-        loss = sum((o * w).sum() for o, w in zip(out, weights))
-        results.append(torch.autograd.grad(loss, (mm, SS)))
-    for hand, auto in zip(*results):
+    for hand, auto in sin_gradients(m, S, A, b, weights):
         assert torch.allclose(hand, auto, rtol=1e-12, atol=1e-14)
     fn = lambda mm, SS: sin_moments(mm, SS, A, b)  # noqa: E731
     assert torch.autograd.gradcheck(fn, (m.clone().requires_grad_(), S.clone().requires_grad_()))

@@ -22,9 +22,10 @@ from harness.task import SaturatingCost
 from plugins.pilco.controllers import LinearController, SquashedController
 from plugins.pilco.objective import PolicyObjective
 from plugins.pilco.propagate import StateLayout
-from plugins.pilco.trig import _sin_forward, sin_moments, squash, squash_moments, trig_moments
+from plugins.pilco.trig import sin_moments, squash, squash_moments, trig_moments
 from tests.pilco.random_gp import DT, mc_moments, random_posterior
 from tests.pilco.test_fused_step import _reference_value_and_grad
+from tests.pilco.test_trig import sin_gradients
 
 torch.set_num_threads(1)
 NUM_SAMPLES = 200_000
@@ -91,13 +92,7 @@ def test_hand_derived_backward_at_large_variance() -> None:
     S = torch.tensor([[90.0, 20.0], [20.0, 400.0]], dtype=DT)
     m = torch.tensor([0.4, -1.3], dtype=DT)
     weights = [torch.randn(*shape, generator=gen, dtype=DT) for shape in ((4,), (4, 4), (2, 4))]
-    results = []
-    for hand in (True, False):
-        mm, SS = m.clone().requires_grad_(), S.clone().requires_grad_()
-        out = sin_moments(mm, SS, A, b) if hand else _sin_forward(mm, SS, A, b)[0]
-        loss = sum((o * w).sum() for o, w in zip(out, weights))
-        results.append(torch.autograd.grad(loss, (mm, SS)))
-    for hand, auto in zip(*results):
+    for hand, auto in sin_gradients(m, S, A, b, weights):
         assert bool(torch.isfinite(hand).all())
         assert torch.allclose(hand, auto, rtol=1e-12, atol=1e-14)
     # the sin(3 x_1) entry has variance 810: gradcheck in a regime with non-negligible gradients too
