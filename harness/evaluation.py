@@ -26,7 +26,8 @@ class EvaluationResult:
 
     Attributes:
         success_rate: fraction of episodes that met the task's success predicate.
-        mean_cost: mean over episodes of the summed per-step cost.
+        mean_cost: mean over episodes of the summed per-step cost over the task horizon
+            (:meth:`~harness.task.Episode.horizon_cost`: a terminated episode holds its last cost).
         solved: ``success_rate >= SOLVED_FRACTION``.
         episodes: the evaluation episodes.
     """
@@ -67,7 +68,7 @@ class Evaluator:
         rate = float(np.mean(successes))
         return EvaluationResult(
             success_rate=rate,
-            mean_cost=float(np.mean([ep.total_cost for ep in episodes])),
+            mean_cost=float(np.mean([ep.horizon_cost(self.spec.horizon) for ep in episodes])),
             solved=rate >= SOLVED_FRACTION,
             episodes=episodes,
         )

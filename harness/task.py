@@ -209,8 +209,18 @@ class Episode:
 
     @property
     def total_cost(self) -> float:
-        """Sum of the per-step costs."""
+        """Sum of the per-step costs of the steps taken."""
         return float(np.sum(self.costs))
+
+    def horizon_cost(self, horizon: int) -> float:
+        """Summed cost over ``horizon`` steps, the measure evaluations report.
+
+        A terminated episode holds its last cost for the ``horizon - steps`` steps it did not take
+        (the region it left is absorbing: a fallen unicycle stays fallen). Without this, a policy
+        that fails *sooner* would score a *lower* cost. Untruncated episodes: :attr:`total_cost`.
+        """
+        missing = max(horizon - self.steps, 0) if self.terminated and self.steps > 0 else 0
+        return self.total_cost + missing * float(self.costs[-1]) if missing else self.total_cost
 
 
 class Task(ABC):
