@@ -486,6 +486,8 @@ class SweepProgress(Protocol):
 
     def cell_done(self, outcome: CellOutcome) -> None: ...
 
+    def trial(self, label: str, record: dict[str, float]) -> None: ...
+
     def finish(self, result: SweepResult) -> None: ...
 
 
@@ -497,6 +499,9 @@ class SilentSweepProgress:
         pass
 
     def cell_done(self, outcome: CellOutcome) -> None:
+        pass
+
+    def trial(self, label: str, record: dict[str, float]) -> None:
         pass
 
     def finish(self, result: SweepResult) -> None:
@@ -543,6 +548,11 @@ class RichSweepProgress:
         style = "red" if outcome.status == "failed" else ""
         self.console.print(outcome.line(), style=style, soft_wrap=True)
 
+    def trial(self, label: str, record: dict[str, float]) -> None:
+        from harness.progress import format_record
+
+        self.console.print(f"{label}: {format_record(record)}", soft_wrap=True)
+
     def finish(self, result: SweepResult) -> None:
         if self._progress is not None:
             self._progress.stop()
@@ -571,6 +581,46 @@ def find_parent_run(client, experiment_id: str, sweep_id: str):
 
 def child_runs(client, experiment_id: str, parent_run_id: str) -> list:
     return _search_all(client, experiment_id, f"tags.`mlflow.parentRunId` = '{parent_run_id}'")
+
+
+#: seconds between two looks at the running cells' newest trials (:class:`TrialWatcher`)
+TRIAL_POLL_SECONDS = 20.0
+
+
+class TrialWatcher:
+    """Reports each new trial of the sweep's running cells, read from the tracking store.
+
+    Workers log every hand-over to their MLflow run; the driver already holds the store, so it
+    reads the running children's newest metrics from there every :data:`TRIAL_POLL_SECONDS`
+    (the same for local and Ray workers, no channel to the workers). A cell's trial number is the
+    newest step of its ``interaction_seconds`` history.
+    """
+
+    def __init__(self, client, experiment_id: str, parent_run_id: str, poll_seconds: float = TRIAL_POLL_SECONDS) -> None:
+        self.client, self.experiment_id, self.parent_run_id = client, experiment_id, parent_run_id
+        self.poll_seconds = poll_seconds
+        self._seen: dict[str, int] = {}  # run id -> newest trial reported
+        self._last = -math.inf
+
+    def poll(self, progress: SweepProgress, now: float | None = None) -> None:
+        now = time.monotonic() if now is None else now
+        if now - self._last < self.poll_seconds:
+            return
+        self._last = now
+        try:
+            running = _search_all(self.client, self.experiment_id, (
+                f"tags.`mlflow.parentRunId` = '{self.parent_run_id}' AND attributes.status = 'RUNNING'"))
+            for run in sorted(running, key=lambda r: r.data.tags.get("mlflow.runName", "")):
+                history = self.client.get_metric_history(run.info.run_id, "interaction_seconds")
+                trial = max((m.step for m in history), default=0)
+                if trial <= self._seen.get(run.info.run_id, 0):
+                    continue
+                self._seen[run.info.run_id] = trial
+                record = {**run.data.metrics, "trial": trial}
+                if all(k in record for k in ("eval_success_rate", "eval_cost", "wall_seconds")):
+                    progress.trial(run.data.tags.get("mlflow.runName", run.info.run_id), record)
+        except Exception:  # a busy or locked store must never stop the sweep; the next poll retries
+            return
 
 
 def _cell_of(run) -> Cell | None:
@@ -697,7 +747,7 @@ def run_sweep(
                 pool = LocalPool(workers or default_workers())
         progress.start(sweep_id, total, len(outcomes))
         if pool is not None:
-            _drive(pool, jobs, pool.workers, result, client, progress)
+            _drive(pool, jobs, pool.workers, result, client, progress, TrialWatcher(client, experiment_id, parent_run_id))
         status = "FINISHED" if not result.failed else "FAILED"
     except KeyboardInterrupt:
         status = "KILLED"
@@ -710,7 +760,8 @@ def run_sweep(
     return result
 
 
-def _drive(pool: _Pool, jobs: deque, workers: int, result: SweepResult, client, progress: SweepProgress) -> None:
+def _drive(pool: _Pool, jobs: deque, workers: int, result: SweepResult, client, progress: SweepProgress,
+           watcher: TrialWatcher | None = None) -> None:
     inflight: dict[Any, tuple[CellJob, float]] = {}
     durations: list[float] = []
 
@@ -730,6 +781,8 @@ def _drive(pool: _Pool, jobs: deque, workers: int, result: SweepResult, client, 
             job = jobs.popleft()
             inflight[pool.submit(job)] = (job, time.perf_counter())
         report()
+        if watcher is not None:
+            watcher.poll(progress)
         for handle in pool.wait(list(inflight), timeout=1.0):
             job, t0 = inflight.pop(handle)
             try:

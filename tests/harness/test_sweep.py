@@ -107,3 +107,47 @@ def test_progress_view_reports_every_cell_and_the_totals(plugins, mlflow_uri, mo
     run_sweep(spec, mlflow_uri, progress=Recording(console))
     assert "1 of 2 cells already finished in an earlier invocation: skipped" in console.export_text()
     assert sweep.format_duration(3725) == "1:02:05" and sweep.format_duration(65) == "1:05" and sweep.format_duration(None) == "–"
+
+
+def test_trial_watcher_reports_each_new_trial_of_running_cells_once(mlflow_uri):
+    """The driver's view of long cells: new hand-overs of RUNNING children, read from the store."""
+    from mlflow.entities import Metric
+
+    from harness.tracking import ensure_experiment
+
+    client = open_client(mlflow_uri)
+    experiment_id = ensure_experiment(client, "watcher-test", mlflow_uri)
+    parent = client.create_run(experiment_id, run_name="sweep-x").info.run_id
+    child = lambda name: client.create_run(experiment_id, run_name=name, tags={"mlflow.parentRunId": parent}).info.run_id  # noqa: E731
+    running, done = child("pilco-cartpole-s0"), child("pilco-cartpole-s1")
+
+    def log_trial(run_id, step, seconds):
+        values = {"interaction_seconds": seconds, "eval_success_rate": 0.5, "eval_cost": 12.0, "wall_seconds": 7.0 * step, "J_after": 20.0 - step}
+        client.log_batch(run_id, metrics=[Metric(k, v, 0, step) for k, v in values.items()])
+
+    log_trial(running, 1, 4.0)
+    log_trial(running, 2, 8.0)
+    log_trial(done, 1, 4.0)
+    client.set_terminated(done, "FINISHED")
+    seen = []
+
+    class Recording(sweep.SilentSweepProgress):
+        def trial(self, label, record):
+            seen.append((label, record["trial"], record["interaction_seconds"]))
+
+    watcher = sweep.TrialWatcher(client, experiment_id, parent, poll_seconds=20.0)
+    watcher.poll(Recording(), now=100.0)
+    assert seen == [("pilco-cartpole-s0", 2, 8.0)]  # the newest trial only; finished children are not watched
+    log_trial(running, 3, 12.0)
+    watcher.poll(Recording(), now=110.0)  # within the poll interval: the store is not read
+    assert len(seen) == 1
+    watcher.poll(Recording(), now=121.0)
+    watcher.poll(Recording(), now=142.0)  # nothing new: nothing printed
+    assert seen == [("pilco-cartpole-s0", 2, 8.0), ("pilco-cartpole-s0", 3, 12.0)]
+
+    from rich.console import Console
+
+    console = Console(record=True, width=200, force_terminal=False)
+    sweep.RichSweepProgress(console).trial("pilco-cartpole-s0", {"trial": 3, "interaction_seconds": 12.0, "eval_success_rate": 0.5,
+                                                                 "eval_cost": 12.0, "wall_seconds": 21.0, "J_after": 17.0})
+    assert "pilco-cartpole-s0: trial 3 | 12.0 s interaction | success 50% | eval cost 12.00 | J 17.00 | wall 21 s" in console.export_text()
