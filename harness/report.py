@@ -373,6 +373,51 @@ def copy_prediction_plot(client, task: str, label: str, runs: Sequence[RunRecord
     return target
 
 
+def test_rows(client, task: str, label: str, runs: Sequence[RunRecord]) -> list[dict[str, Any]]:
+    """One row per run whose saved policy was tested with ``harness eval`` (its ``test_*`` metrics)."""
+    rows = []
+    for r in sorted(runs, key=lambda r: r.seed):
+        metrics = client.get_run(r.run_id).data.metrics
+        if "test_success_rate" in metrics:
+            rows.append({"task": task, "learner": label, "seed": r.seed, "solved": r.solved,
+                         "test_episodes": int(metrics.get("test_episodes", 0)),
+                         "test_success_rate": metrics["test_success_rate"], "run_id": r.run_id})
+    return rows
+
+
+def test_markdown(task: str, rows: Sequence[dict[str, Any]]) -> str:
+    lines = [f"# `{task}`: saved policies tested on fresh episodes (`harness eval RUN_ID --episodes N`)", "",
+             "Test episodes start from the task's initial distribution on a new environment (seed 12345 + i); they are "
+             "not interaction. Success: the task's own rule. The histogram of final distances from the goal of the "
+             f"representative tested run is `fig4b_{task}_<learner>.png` (the paper's Fig. 4b for the unicycle).", "",
+             "| learner | seed | solved in training | test episodes | test success rate | run |", "|---|---|---|---|---|---|"]
+    for r in rows:
+        lines.append(f"| {r['learner']} | {r['seed']} | {'yes' if r['solved'] else 'no'} | {r['test_episodes']} "
+                     f"| {100 * r['test_success_rate']:.1f} % | `{r['run_id'][:8]}` |")
+    return "\n".join(lines) + "\n"
+
+
+def copy_test_histogram(client, task: str, label: str, runs: Sequence[RunRecord], tested: Sequence[dict[str, Any]],
+                        out: Path) -> Path | None:
+    """The final-distance histogram of the representative run if it was tested, else of the first tested run."""
+    import shutil
+    import tempfile
+
+    ids = [row["run_id"] for row in tested]
+    if not ids:
+        return None
+    rep = representative_run(runs)
+    run_id = rep.run_id if rep is not None and rep.run_id in ids else ids[0]
+    names = [a.path for a in client.list_artifacts(run_id, "test") if a.path.endswith("test_final_distance.png")]
+    if not names:
+        return None
+    with tempfile.TemporaryDirectory() as tmp:
+        local = client.download_artifacts(run_id, names[0], tmp)
+        target = out / f"fig4b_{task}_{label.replace('@', '_')}.png"
+        shutil.copyfile(local, target)
+    return target
+
+
 def fmt_seconds(value: float) -> str:
     if value is None or (isinstance(value, float) and math.isnan(value)):
         return "–"
@@ -578,10 +623,19 @@ def make_report(
         rows = [row for label, runs in by_label.items() for row in run_rows(task, label, runs)]
         (out / f"runs_{task}.md").write_text(runs_markdown(task, rows))
         written += [out / f"runs_{task}.md", write_csv(out / f"runs_{task}.csv", rows, RUNS_FIELDS)]
+        tested: list[dict[str, Any]] = []
         for label, runs in by_label.items():
             plot = copy_prediction_plot(client, task, label, runs, out)
             if plot is not None:
                 written.append(plot)
+            label_tested = test_rows(client, task, label, runs)
+            tested += label_tested
+            histogram = copy_test_histogram(client, task, label, runs, label_tested, out)
+            if histogram is not None:
+                written.append(histogram)
+        if tested:
+            (out / f"test_{task}.md").write_text(test_markdown(task, tested))
+            written += [out / f"test_{task}.md", write_csv(out / f"test_{task}.csv", tested)]
 
     t1 = table1_rows(by_task, table1_learner)
     (out / "table1.md").write_text(table1_markdown(t1, table1_learner))

@@ -121,6 +121,14 @@ def test_eval_tests_a_saved_policy_and_logs_to_the_run(tmp_path, mlflow_uri):
     missing = CliRunner().invoke(main, ["eval", "no-such-run", "--tracking-uri", mlflow_uri])
     assert missing.exit_code == 2 and "no run 'no-such-run'" in missing.output
 
+    # `harness report` picks the test up from the store: a per-task table and the histogram (Fig. 4b)
+    out = tmp_path / "results"
+    report = CliRunner().invoke(main, ["report", "--tracking-uri", mlflow_uri, "--include-bench", "--out", str(out)])
+    assert report.exit_code == 0, report.output
+    table = (out / "test_cartpole.md").read_text()
+    assert f"| 5 | no | 12 | 0.0 % | `{run_id[:8]}` |" in table
+    assert len(list(out.glob("fig4b_cartpole_random*.png"))) == 1
+
 
 def test_two_bench_processes_on_one_fresh_store(tmp_path):
     """Both runs complete and are recorded (the store's creation is serialised by a file lock)."""
