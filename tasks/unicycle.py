@@ -45,7 +45,9 @@ so the observation is a complete state for control; ``TaskSpec.physical_state_di
 
 from __future__ import annotations
 
+import importlib.util
 import math
+import os
 from collections.abc import Callable, Sequence
 from dataclasses import dataclass
 from functools import lru_cache
@@ -74,8 +76,8 @@ OBS_FROM_ODE = (0, 1, 2, 3, 4, 7, 8, 10)  # ODE indices of obs entries 0-4, 7, 8
 OBS_IDENTITY = (0, 1, 2, 3, 4, 7, 8, 9)  # the matching observation indices
 
 #: Default RK4 sub-steps per second of system time: 30 per 0.15 s control step (option
-#: ``substeps``; 4 right-hand-side evaluations of ~4 us each per sub-step, ~2,000 env steps per
-#: CPU second). One-step max-abs error against :func:`tasks.simulation.reference_step`: 2.8e-6
+#: ``substeps``; 4 right-hand-side evaluations per sub-step: ~25,000 env steps per CPU second with
+#: the numba-compiled stepper, ~2,000 in plain Python, ``results/benchmarks/env_steps.md``). One-step max-abs error against :func:`tasks.simulation.reference_step`: 2.8e-6
 #: (worst of 10 states with rates up to 2 rad/s, angles up to 0.6 rad, torques at the bounds;
 #: ``test_rk4_step_matches_reference_solver`` checks < 1e-5); with 24 sub-steps 6.3e-6 at ~2,500
 #: steps/s, with 20 1.2e-5. A fixed-step 8th-order Dormand-Prince does not need fewer evaluations
@@ -289,19 +291,26 @@ def unicycle_rhs(z: Sequence[float], u: Sequence[float], p: UnicycleParams) -> t
     )
 
 
-def _falling_derivative(p: UnicycleParams, fall_angle: float) -> Callable[..., tuple[float, ...]]:
+def _no_jit(function: Callable) -> Callable:
+    return function
+
+
+def _falling_derivative(p: UnicycleParams, fall_angle: float, jit: Callable = _no_jit) -> Callable[..., tuple[float, ...]]:
     """``deriv(thd, phd, pwd, pfd, ptd, theta, phi, psi_f, u_t, u_w) -> dz/dt`` (12 floats) with the fall
-    region absorbing: the right-hand side of :func:`falling_rhs` on the eight state entries it reads."""
-    system, r_w, cos, sin = unicycle_system(p), p.r_w, math.cos, math.sin
+    region absorbing: the right-hand side of :func:`falling_rhs` on the eight state entries it reads.
+
+    ``jit`` compiles ``deriv`` and the functions it calls (``numba.njit`` in :func:`unicycle_stepper`);
+    the default leaves them plain Python."""
+    system, solve, r_w, cos, sin = jit(unicycle_system(p)), jit(_solve_blocks), p.r_w, math.cos, math.sin
 
     def deriv(thd: float, phd: float, pwd: float, pfd: float, ptd: float, th: float, phi: float, pf: float,
               V: float, U: float) -> tuple[float, ...]:
         if abs(th) > fall_angle or abs(pf) > fall_angle:
             return _FROZEN
-        x0, x1, x2, x3, x4 = _solve_blocks(*system(thd, phd, pwd, pfd, ptd, th, pf, V, U))
+        x0, x1, x2, x3, x4 = solve(*system(thd, phd, pwd, pfd, ptd, th, pf, V, U))
         return (-x0, -x1, -x2, -x3, -x4, r_w * cos(phi) * pwd, r_w * sin(phi) * pwd, thd, phd, pwd, pfd, ptd)
 
-    return deriv
+    return jit(deriv)
 
 
 def falling_rhs(p: UnicycleParams, fall_angle: float) -> RightHandSide:
@@ -322,19 +331,11 @@ def falling_rhs(p: UnicycleParams, fall_angle: float) -> RightHandSide:
     return rhs
 
 
-def unicycle_stepper(p: UnicycleParams, fall_angle: float) -> Stepper:
-    """``step(z, u, dt, substeps)``: ``rk4_zoh(falling_rhs(p, fall_angle), z, u, dt, substeps)`` on scalars.
+def _rk4_core(deriv: Callable[..., tuple[float, ...]]) -> Callable[..., tuple[float, ...]]:
+    """``core(12 states, u_t, u_w, dt, substeps) -> 12 states``: ``substeps`` RK4 steps of ``deriv`` on scalars."""
 
-    The same arithmetic as :func:`tasks.simulation.rk4_zoh` (bit-identical results) without the
-    per-stage lists: the right-hand side reads only the five rates and ``theta, phi, psi_f``, so
-    only those enter the stage states; all 12 entries get the RK4 update. ``z``: the 12 ODE
-    states (units in the module docstring); ``u = [u_t, u_w]`` (Nm); ``dt`` in s. Returns 12 floats.
-    """
-    deriv = _falling_derivative(p, fall_angle)
-
-    def step(z: Sequence[float], u: Sequence[float], dt: float, substeps: int) -> list[float]:
-        thd, phd, pwd, pfd, ptd, x, y, th, phi, psw, pf, pst = map(float, z)
-        V, U = float(u[0]), float(u[1])
+    def core(thd: float, phd: float, pwd: float, pfd: float, ptd: float, x: float, y: float, th: float, phi: float,
+             psw: float, pf: float, pst: float, V: float, U: float, dt: float, substeps: int) -> tuple[float, ...]:
         h = dt / substeps
         half, sixth = 0.5 * h, h / 6.0
         for _ in range(substeps):
@@ -363,7 +364,43 @@ def unicycle_stepper(p: UnicycleParams, fall_angle: float) -> Stepper:
                 pf + sixth * (a10 + 2.0 * (b10 + c10) + d10),
                 pst + sixth * (a11 + 2.0 * (b11 + c11) + d11),
             )
-        return [thd, phd, pwd, pfd, ptd, x, y, th, phi, psw, pf, pst]
+        return thd, phd, pwd, pfd, ptd, x, y, th, phi, psw, pf, pst
+
+    return core
+
+
+def numba_available() -> bool:
+    """Whether :func:`unicycle_stepper` compiles its arithmetic (numba installed, ``HARNESS_NO_JIT`` unset)."""
+    if os.environ.get("HARNESS_NO_JIT"):
+        return False
+    return importlib.util.find_spec("numba") is not None
+
+
+@lru_cache(maxsize=None)
+def unicycle_stepper(p: UnicycleParams, fall_angle: float, compiled: bool | None = None) -> Stepper:
+    """``step(z, u, dt, substeps)``: ``rk4_zoh(falling_rhs(p, fall_angle), z, u, dt, substeps)`` on scalars.
+
+    The same arithmetic as :func:`tasks.simulation.rk4_zoh` (bit-identical results) without the
+    per-stage lists: the right-hand side reads only the five rates and ``theta, phi, psi_f``, so
+    only those enter the stage states; all 12 entries get the RK4 update. ``z``: the 12 ODE
+    states (units in the module docstring); ``u = [u_t, u_w]`` (Nm); ``dt`` in s. Returns 12 floats.
+
+    ``compiled`` (default: :func:`numba_available`): the same Python source compiled by
+    ``numba.njit`` (extra ``fast``; IEEE arithmetic, no fast-math, so the states equal the plain
+    Python ones, ``tests/tasks/test_unicycle.py``), ~10x more steps per second; the first step of
+    a process pays the compilation (a few seconds). Without numba the source runs as Python.
+    """
+    if compiled is None:
+        compiled = numba_available()
+    jit = _no_jit
+    if compiled:
+        import numba
+
+        jit = numba.njit(cache=False)
+    core = jit(_rk4_core(_falling_derivative(p, fall_angle, jit)))
+
+    def step(z: Sequence[float], u: Sequence[float], dt: float, substeps: int) -> list[float]:
+        return list(core(*map(float, z), float(u[0]), float(u[1]), float(dt), int(substeps)))
 
     return step
 

@@ -15,6 +15,7 @@ import tasks  # noqa: F401  (registers the gymnasium ids)
 from harness.errors import InvalidActionError, OptionError
 from harness.task import Episode
 from tasks.simulation import reference_step, rk4_zoh
+import tasks.unicycle as unicycle_module
 from tasks.unicycle import (
     INIT_MC_SAMPLES,
     SUBSTEPS_PER_SECOND,
@@ -532,3 +533,21 @@ def test_riding_lqr_linear_policy_success(init, low, high):
     env = task.make_env()
     rate = np.mean([task.success(run_episode(env, task.spec, policy, seed=1000 + i)) for i in range(60)])
     assert low <= rate <= high
+
+
+@pytest.mark.skipif(not unicycle_module.numba_available(), reason="numba not installed (extra 'fast')")
+def test_compiled_stepper_equals_the_python_source_bit_for_bit():
+    """The numba-compiled stepper runs the same source with IEEE arithmetic: identical states,
+    including the absorbing fall region and states near it."""
+    fast = unicycle_module.unicycle_stepper(PARAMS, math.pi / 2, True)
+    plain = unicycle_module.unicycle_stepper(PARAMS, math.pi / 2, False)
+    rng = np.random.default_rng(11)
+    for scale in (0.05, 0.5, 1.5):
+        for _ in range(100):
+            z, u = rng.normal(0.0, scale, 12), rng.uniform(-1, 1, 2) * [10.0, 50.0]
+            assert np.array_equal(fast(z, u, 0.15, 30), plain(z, u, 0.15, 30), equal_nan=True)
+
+
+def test_no_jit_environment_variable_selects_the_python_stepper(monkeypatch):
+    monkeypatch.setenv("HARNESS_NO_JIT", "1")
+    assert not unicycle_module.numba_available()
