@@ -630,16 +630,17 @@ class Unicycle(Task):
 
     Cost: :func:`unicycle_cost` (the reference's ``loss_unicycle``, width 1).
 
-    Control structure (``tests/tasks/test_unicycle.py``): upright and at rest, neither torque
-    enters the roll acceleration to first order (the turntable yaws, the wheel pitches), so the
-    falling roll mode (time constant ~0.3 s) cannot be stabilised by linear feedback about rest.
-    A linear policy balances only about a moving equilibrium, e.g. riding forward (a bias in
-    ``W x + b``), where forward speed times yaw rate gives the roll torque. A discrete LQR about
-    riding at 1 m/s, applied as the PILCO linear controller with trapezoid squashing, succeeds in
-    100 % of 200 episodes from ``init="code"`` but only ~66 % from ``init="paper"`` (best of the
-    LQR designs tried; the failures start with large roll or pitch). Riding away also makes the
-    cost grow (``x_c``), so under ``init="paper"`` the expected cost of that balancing policy
-    (57.6 of 67, Monte Carlo with the fall absorbing) is close to that of falling at once (62.4).
+    Control structure (:mod:`tasks.unicycle_lqr`, ``tests/tasks/test_unicycle.py``): upright and at
+    rest, neither torque enters the roll acceleration to first order (the turntable yaws, the wheel
+    pitches), so the falling roll mode (time constant ~0.3 s) cannot be stabilised by linear
+    feedback about rest. A linear policy balances only about a moving equilibrium, e.g. riding
+    forward (a bias in ``W x + b``), where forward speed times yaw rate gives the roll torque. A
+    discrete LQR about riding at 0.5-1.5 m/s, applied as the PILCO linear controller with trapezoid
+    squashing, succeeds in 100 % of 1000 episodes from ``init="code"`` but in at most 65 % from
+    ``init="paper"`` (the failures start with large roll or pitch;
+    ``results/benchmarks/unicycle_linear_ceiling.md``). Riding away also makes the cost grow
+    (``x_c``): from ``init="paper"`` the 1 m/s LQR's evaluation cost (58.2 of 67) is close to that
+    of falling at once (62.3).
 
     Success: the episode ran all ``horizon`` steps without a fall, and at its final true state the
     top of the frame (turntable centre) is within 0.10 m of its upright position, the point

@@ -121,6 +121,25 @@ class PilcoPolicy:
         return act(observation, self.controller, self.layout)
 
 
+def linear_policy_from_gain(spec: TaskSpec, K: np.ndarray, x_star: np.ndarray, squash: str = "trapezoid") -> PilcoPolicy:
+    """PILCO's squashed linear controller equal to ``u = -K (x - x*)`` to first order at ``x*``.
+
+    ``K (F, D)``, ``x* (D,)`` in the task's state coordinates; pre-squash ``W = -K / (s u_max)``,
+    ``b = -W x*`` with ``s`` the squashing's slope at 0 (:data:`~plugins.pilco.trig.SQUASH_SLOPE`).
+    For tasks whose policy sees the raw state (no sin/cos entries), e.g. a reference LQR on the unicycle.
+    """
+    from plugins.pilco.trig import SQUASH_SLOPE
+
+    layout = layout_for(spec, PRESETS.get(spec.name, GENERIC))
+    if layout.policy_inputs != tuple(range(spec.state_dim)):
+        raise ValueError(f"{spec.name}: the policy does not see the raw state ({layout.policy_inputs}); a gain on it cannot be mapped")
+    u_max = np.asarray(spec.action_high, dtype=np.float64)
+    W = -np.asarray(K, dtype=np.float64) / (SQUASH_SLOPE[squash] * u_max[:, None])
+    b = -W @ np.asarray(x_star, dtype=np.float64)
+    controller = SquashedController(LinearController(torch.from_numpy(W), torch.from_numpy(b)), u_max, squash)
+    return PilcoPolicy(controller, layout)
+
+
 def _initial_policy_input_moments(spec: TaskSpec, layout: StateLayout) -> tuple[torch.Tensor, torch.Tensor]:
     """Moments of the policy inputs under N(mu0, Sigma0) (for placing the RBF centres)."""
     from plugins.pilco.trig import augment_trig

@@ -40,6 +40,8 @@ from functools import lru_cache
 import torch
 
 SQUASH_KINDS = ("trapezoid", "sin")
+#: slope of each squashing at 0 in units of ``u_max``: trapezoid ``(9 sin z + sin 3z) / 8`` -> (9 + 3) / 8; sin -> 1
+SQUASH_SLOPE = {"trapezoid": 1.5, "sin": 1.0}
 
 
 def _scaled_expm1(log_scale: torch.Tensor, v: torch.Tensor) -> torch.Tensor:
