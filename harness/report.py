@@ -99,6 +99,8 @@ class RunRecord:
     state_dim: int | None
     error: str = ""
     label: str = ""
+    #: interaction episodes at the run's last hand-over (random ones included)
+    episodes: float | None = None
 
     @property
     def cell(self) -> tuple[str, str, int]:
@@ -130,6 +132,7 @@ def record_from_run(run, sweep_id: str) -> RunRecord | None:
         policy_parameters=_metric(metrics, "policy_parameters"),
         state_dim=int(float(state_dim)) if state_dim not in (None, "") else None,
         error=tags.get(ERROR_TAG, ""),
+        episodes=_metric(metrics, "interaction_episodes"),
     )
 
 
@@ -475,21 +478,26 @@ def comparison_markdown(task: str, rows: Sequence[dict[str, Any]]) -> str:
     return "\n".join(lines) + "\n"
 
 
-def table1_rows(runs_by_task: dict[str, dict[str, list[RunRecord]]], learner: str) -> list[dict[str, Any]]:
+def table1_rows(runs_by_task: dict[str, dict[str, list[RunRecord]]], learner: str,
+                incomplete: Sequence[RunRecord] = ()) -> list[dict[str, Any]]:
     """Table 1 measured for ``learner`` on the paper's tasks that were run."""
     rows = []
     for task, (paper_task, p_state, p_trials, p_exp, p_params) in PAPER_TABLE1.items():
-        runs = runs_by_task.get(task, {}).get(learner)
-        if not runs:
+        runs = runs_by_task.get(task, {}).get(learner, [])
+        stopped = [r for r in incomplete if r.task == task and r.learner == learner]
+        if not runs and not stopped:
             continue
         solved = [r for r in runs if r.solved]
-        dims = sorted({r.state_dim for r in runs if r.state_dim is not None})
+        dims = sorted({r.state_dim for r in [*runs, *stopped] if r.state_dim is not None})
         rows.append({
             "task": task, "paper_task": paper_task, "runs": len(runs), "solved": len(solved),
+            "stopped": len(stopped),
+            "stopped_episodes": _range([r.episodes for r in stopped if r.episodes is not None]),
+            "stopped_interaction_s": _range([r.interaction_seconds for r in stopped]),
             "state_dim": "/".join(str(d) for d in dims) or "?",
             "trials": _range([r.trials_to_success for r in solved if r.trials_to_success is not None]),
             "experience_s": _range([r.time_to_success for r in solved if r.time_to_success is not None]),
-            "policy_parameters": _range([r.policy_parameters for r in runs if r.policy_parameters is not None]),
+            "policy_parameters": _range([r.policy_parameters for r in [*runs, *stopped] if r.policy_parameters is not None]),
             "paper": {"state": p_state, "trials": p_trials, "experience": p_exp, "parameters": p_params},
         })
     return rows
@@ -503,7 +511,9 @@ def table1_markdown(rows: Sequence[dict[str, Any]], learner: str) -> str:
         "the runs that is (unsolved runs have no time to success; see the comparison tables for "
         "statistics that count them). Trials = interaction episodes up to the first solved evaluation, "
         "the initial random ones included. Experience = interaction time to success (system seconds). "
-        "Parameters = the policy's parameter count logged by the learner (`policy_parameters`).",
+        "Parameters = the policy's parameter count logged by the learner (`policy_parameters`). "
+        "Runs stopped before their limit (KILLED or still running, e.g. at the end of a session) are not counted; "
+        "they are listed under the table with the trials and interaction they reached, unsolved so far.",
         "",
         "| task | solved | state space (ours / paper) | # trials (ours / paper) | experience in s (ours / paper) | policy parameters (ours / paper) |",
         "|---|---|---|---|---|---|",
@@ -518,22 +528,30 @@ def table1_markdown(rows: Sequence[dict[str, Any]], learner: str) -> str:
         )
     if not rows:
         lines.append(f"| (no runs of `{learner}` on cartpole, double-pendulum or unicycle in the selected sweeps) | | | | | |")
+    notes = [r for r in rows if r["stopped"]]
+    if notes:
+        lines += ["", "Stopped before their limit, not solved so far (lower bounds, not results):", ""]
+        for r in notes:
+            lines.append(f"- {r['task']}: {r['stopped']} run(s) at {_fmt_range(*r['stopped_episodes'])} trials, "
+                         f"{_fmt_range(*r['stopped_interaction_s'], fmt=_seconds)} s of interaction")
     return "\n".join(lines) + "\n"
 
 
 def _flat_table1(rows: Sequence[dict[str, Any]]) -> list[dict[str, Any]]:
     out = []
     for r in rows:
-        flat = {"task": r["task"], "paper_task": r["paper_task"], "runs": r["runs"], "solved": r["solved"], "state_dim": r["state_dim"]}
-        for key in ("trials", "experience_s", "policy_parameters"):
+        flat = {"task": r["task"], "paper_task": r["paper_task"], "runs": r["runs"], "solved": r["solved"],
+                "stopped": r["stopped"], "state_dim": r["state_dim"]}
+        for key in ("trials", "experience_s", "policy_parameters", "stopped_episodes", "stopped_interaction_s"):
             flat[f"{key}_median"], flat[f"{key}_min"], flat[f"{key}_max"] = r[key]
         flat.update({f"paper_{k}": v for k, v in r["paper"].items()})
         out.append(flat)
     return out
 
 
-TABLE1_FIELDS = ["task", "paper_task", "runs", "solved", "state_dim"] + [
-    f"{key}_{part}" for key in ("trials", "experience_s", "policy_parameters") for part in ("median", "min", "max")
+TABLE1_FIELDS = ["task", "paper_task", "runs", "solved", "stopped", "state_dim"] + [
+    f"{key}_{part}" for key in ("trials", "experience_s", "policy_parameters", "stopped_episodes", "stopped_interaction_s")
+    for part in ("median", "min", "max")
 ] + ["paper_state", "paper_trials", "paper_experience", "paper_parameters"]
 
 
@@ -637,7 +655,7 @@ def make_report(
             (out / f"test_{task}.md").write_text(test_markdown(task, tested))
             written += [out / f"test_{task}.md", write_csv(out / f"test_{task}.csv", tested)]
 
-    t1 = table1_rows(by_task, table1_learner)
+    t1 = table1_rows(by_task, table1_learner, data.incomplete)
     (out / "table1.md").write_text(table1_markdown(t1, table1_learner))
     written += [out / "table1.md", write_csv(out / "table1.csv", _flat_table1(t1), TABLE1_FIELDS)]
 

@@ -150,6 +150,19 @@ def test_table1_measured_beside_the_paper():
     assert row["policy_parameters"] == (305.0, 305.0, 305.0) and row["state_dim"] == "4"
     md = table1_markdown(rows, "pilco")
     assert "| cartpole (cart-pole) | 2/3 | R^4 / R^4 | 5 [4–6] / <= 10 | 20.0 [15.0–25.0] / ~ 20 s | R^305 [305–305] / R^305 |" in md
+    assert "Stopped before their limit" not in md
+
+    # a run stopped at the end of a session: not counted, shown as a lower bound under the table
+    import dataclasses
+
+    stopped = dataclasses.replace(_record(7, False, interaction=30.0, status="KILLED", task="unicycle", params=22.0), episodes=25.0)
+    rows = table1_rows({"cartpole": {"pilco": runs}}, "pilco", [stopped])
+    unicycle = rows[-1]
+    assert (unicycle["task"], unicycle["runs"], unicycle["solved"], unicycle["stopped"]) == ("unicycle", 0, 0, 1)
+    assert math.isnan(unicycle["trials"][0]) and unicycle["policy_parameters"] == (22.0, 22.0, 22.0)
+    md = table1_markdown(rows, "pilco")
+    assert "| unicycle (unicycle) | 0/0 | R^4 / R^12 | – / ~ 20 | – / ~ 20-30 s | R^22 [22–22] / R^28 |" in md
+    assert "- unicycle: 1 run(s) at 25 [25–25] trials, 30.0 [30.0–30.0] s of interaction" in md
 
 
 def test_literature_rows_need_a_source(tmp_path):
