@@ -35,7 +35,7 @@ def format_record(record: dict[str, Any]) -> str:
     parts.append(f"{record['interaction_seconds']:.1f} s interaction")
     parts.append(f"success {100 * record['eval_success_rate']:.0f}%")
     parts.append(f"eval cost {record['eval_cost']:.2f}")
-    for key, label in (("J_after", "J"), ("predicted_cost", "predicted")):
+    for key, label in (("J_after", "J"), ("J_sampled", "J sampled"), ("predicted_cost", "predicted")):
         if key in record:
             parts.append(f"{label} {record[key]:.2f}")
     parts.append(f"wall {record['wall_seconds']:.0f} s")

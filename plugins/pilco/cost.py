@@ -66,6 +66,12 @@ class CostMoments:
         self.linear_map = torch.as_tensor(cost.linear_map, dtype=torch.float64)
         self.target = torch.as_tensor(cost.target, dtype=torch.float64)
 
+    def sample(self, x: torch.Tensor) -> torch.Tensor:
+        """The cost at known states ``x (..., D)`` -> ``(...)``, with this object's width."""
+        phi = x @ self.angle_map.T
+        r = torch.cat([x, torch.sin(phi), torch.cos(phi)], dim=-1) @ self.linear_map.T - self.target
+        return 1.0 - torch.exp(-(r * r).sum(-1) / (2.0 * self.width**2))
+
     def residual_moments(self, m: torch.Tensor, S: torch.Tensor) -> tuple[torch.Tensor, torch.Tensor]:
         """Gaussian ``r = C a(x) - target`` for ``x ~ N(m, S)``: ``(..., P)``, ``(..., P, P)``."""
         ma, sa = augment_trig(m, S, self.angle_map)

@@ -43,6 +43,7 @@ from plugins.pilco.gp import GPModel
 from plugins.pilco.objective import PolicyObjective
 from plugins.pilco.policy_search import optimise_policy
 from plugins.pilco.propagate import StateLayout, act
+from plugins.pilco.sampling import sampled_costs
 
 
 @dataclass(frozen=True)
@@ -180,6 +181,8 @@ class Pilco(Learner):
         Option("policy_max_evaluations", int, None, "J+dJ evaluations per policy search (default: task preset, 300; unicycle 150)", low=1),
         Option("threads", int, 1, "torch threads (1 when several runs share the machine)", low=1),
         Option("plots", bool, True, "save the predicted-vs-realised cost plot per trial"),
+        Option("sample_particles", int, 500, "particles for J_sampled, the policy's cost by Monte Carlo through the same GP "
+               "(checks the moment-matching J; 0 = off)", low=0),
     )
 
     def __init__(self, spec: TaskSpec, options: dict[str, Any] | None = None, seed: int = 0) -> None:
@@ -219,7 +222,8 @@ class Pilco(Learner):
             base = RBFController.initial(mean, cov, self.preset.num_centres, f, _initial_length_scales(layout), generator=generator)
         return SquashedController(base, spec.action_high, self.options["squash"])
 
-    def _plot_prediction(self, predicted: tuple[np.ndarray, np.ndarray], episode: Episode, path: Path, trial: int) -> Path:
+    def _plot_prediction(self, predicted: tuple[np.ndarray, np.ndarray], sampled: np.ndarray | None, episode: Episode,
+                         path: Path, trial: int) -> Path:
         import matplotlib
 
         matplotlib.use("Agg")
@@ -231,6 +235,8 @@ class Pilco(Learner):
         fig, ax = plt.subplots(figsize=(6, 3.2), dpi=110)
         ax.fill_between(t_pred, mean - 2 * std, mean + 2 * std, color="tab:blue", alpha=0.25, label="predicted ±2σ")
         ax.plot(t_pred, mean, color="tab:blue", label="predicted E[cost]")
+        if sampled is not None:
+            ax.plot(t_pred, sampled, "--", color="tab:green", label="same model, sampled")
         ax.plot(t_real, episode.costs, "o-", color="tab:red", ms=3, label="realised cost (trial)")
         ax.set(xlabel="time [s]", ylabel="cost", ylim=(-0.05, 1.05), title=f"{self.name} on {self.spec.name}: trial {trial}")
         ax.legend(loc="lower left", fontsize=8)
@@ -255,15 +261,16 @@ class Pilco(Learner):
                 explore = UniformRandomPolicy(scale * spec.action_low, scale * spec.action_high, self.seed)
                 for _ in range(self.preset.initial_rollouts):
                     interaction.rollout(explore)
-                hyperparameters, trial, predicted = None, 0, None
+                hyperparameters, trial, predicted, sampled = None, 0, None, None
             else:  # continue right after the hand-over of trial `trial`
                 controller.load_state_dict(resumed["controller"])
                 hyperparameters, trial, predicted = resumed["hyperparameters"], resumed["trial"], resumed["predicted"]
+                sampled = resumed.get("sampled")
             while True:
                 if trial > 0:  # apply the policy handed over last for one trial, record the data
                     episode = interaction.rollout(PilcoPolicy(controller, self.layout))
                     if o["plots"] and predicted is not None:
-                        self.artifacts.append(self._plot_prediction(predicted, episode, workdir / f"prediction_trial{trial:03d}.png", trial))
+                        self.artifacts.append(self._plot_prediction(predicted, sampled, episode, workdir / f"prediction_trial{trial:03d}.png", trial))
                 trial += 1
                 x, y = transitions(interaction.episodes, self.layout)
                 fit = model.fit(x, y, warm_start=hyperparameters, restarts=o["gp_restarts"], seed=self.seed + trial)
@@ -284,7 +291,10 @@ class Pilco(Learner):
                     predicted = objective.predicted_costs()
                 except (NumericalError, torch.linalg.LinAlgError):  # the kept policy's prediction degenerated: no plot, say so
                     predicted = None
+                sampled = sampled_costs(objective, o["sample_particles"], seed=1000 * self.seed + trial) if o["sample_particles"] else None
                 self.metrics = self._trial_metrics(fit, search, failed, predicted, objective.num_params)
+                if sampled is not None:
+                    self.metrics["J_sampled"] = float(sampled.sum())
                 self.artifacts += self._save_model(workdir, trial, model, fit)
                 if trial == 1:
                     self.artifacts.append(self._save_settings(workdir))
@@ -293,6 +303,7 @@ class Pilco(Learner):
                     "hyperparameters": hyperparameters,
                     "trial": trial,
                     "predicted": predicted,
+                    "sampled": sampled,
                 }
                 yield PilcoPolicy(copy.deepcopy(controller), self.layout)
         finally:
@@ -310,7 +321,7 @@ class Pilco(Learner):
         return path
 
     def state_dict(self) -> dict[str, Any]:
-        """Controller parameters, GP hyperparameters (warm start), trial, pending prediction."""
+        """Controller parameters, GP hyperparameters (warm start), trial, pending prediction (closed form and sampled)."""
         return self._state
 
     def _trial_metrics(self, fit, search, failed: float, predicted, num_params: int) -> dict[str, float]:

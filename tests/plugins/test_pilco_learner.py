@@ -35,6 +35,10 @@ def test_pilco_smoke_on_short_cartpole():
         assert key in tracker.metrics, key
     assert dict(tracker.metrics["n_data"]) == {1: 15.0, 2: 30.0}
     assert dict(tracker.metrics["policy_parameters"])[1] == 5 * 5 + 5 + 5  # n_c p + n_c F + F p
+    # the same policy and model by Monte Carlo: near the closed form at this short horizon, within [0, H]
+    for step in (1, 2):
+        sampled, closed = dict(tracker.metrics["J_sampled"])[step], dict(tracker.metrics["J_after"])[step]
+        assert 0.0 <= sampled <= 15.0 and abs(sampled - closed) < 0.1 * closed
     names = {p.name for p, _ in tracker.artifacts}
     assert {"model_trial001.pt", "gp_hyperparameters_trial001.json", "prediction_trial001.png", "pilco_settings.json"} <= names
     assert tracker.status == "FINISHED"

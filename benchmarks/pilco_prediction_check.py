@@ -1,0 +1,137 @@
+"""How far to trust a PILCO run's predicted cost: closed form vs the same model sampled vs the real system.
+
+Usage::
+
+    .venv/bin/python benchmarks/pilco_prediction_check.py RUN_ID [--trial K] [--particles 4000] [--episodes 200]
+        [--tracking-uri URI] [--out results/benchmarks]
+
+For trial ``K`` of a finished or running PILCO run (default: its last saved trial) it loads the
+trained GP (``trialK/model_trialK.pt``) and the policy handed over at that trial
+(``policies/policy_trialK.pkl``) from the tracking store and reports, per predicted step:
+
+* **closed form**: PILCO's moment-matching expected cost (what the policy search minimised);
+* **sampled**: the same model and policy by Monte Carlo (:func:`plugins.pilco.sampling.sampled_costs`):
+  the gap to the closed form is the Gaussian approximation's error over many steps;
+* **real**: the policy on the real task (the harness's evaluator, ``--episodes`` episodes from the
+  initial distribution, a terminated episode holding its last cost): the gap to *sampled* is model bias.
+
+``--lqr-speeds 0.3 0.5`` (unicycle only) adds, under the same model, the riding LQRs of
+:mod:`tasks.unicycle_lqr` as PILCO linear controllers: whether the model knows of a better policy
+than the one the search found. Writes ``prediction_check_<task>_<run>_t<K>.md`` into ``--out``.
+"""
+
+from __future__ import annotations
+
+import argparse
+import json
+import sys
+import tempfile
+from pathlib import Path
+
+import numpy as np
+import torch
+
+ROOT = Path(__file__).resolve().parents[1]
+sys.path.insert(0, str(ROOT))
+
+from harness.discovery import load_learner, load_task  # noqa: E402
+from harness.evaluation import Evaluator  # noqa: E402
+from harness.tracking import open_client, resolve_tracking_uri  # noqa: E402
+from plugins.pilco.gp import GPModel  # noqa: E402
+from plugins.pilco.objective import PolicyObjective  # noqa: E402
+from plugins.pilco.sampling import sampled_costs  # noqa: E402
+
+
+def real_costs(evaluator: Evaluator, policy, horizon: int) -> tuple[np.ndarray, float]:
+    """Per-step mean cost ``(horizon,)`` over the evaluator's episodes (a terminated episode holds
+    its last cost) and the success rate."""
+    result = evaluator(policy)
+    per_step = np.zeros(horizon)
+    for ep in result.episodes:
+        c = np.full(horizon, ep.costs[-1] if ep.terminated else np.nan)
+        c[: ep.steps] = ep.costs[:horizon]
+        per_step += c / len(result.episodes)
+    return per_step, result.success_rate
+
+
+def main(argv: list[str] | None = None) -> None:
+    parser = argparse.ArgumentParser(description=__doc__.splitlines()[0])
+    parser.add_argument("run_id")
+    parser.add_argument("--trial", type=int, default=None)
+    parser.add_argument("--particles", type=int, default=4000)
+    parser.add_argument("--episodes", type=int, default=200)
+    parser.add_argument("--tracking-uri", default=None)
+    parser.add_argument("--out", type=Path, default=ROOT / "results" / "benchmarks")
+    parser.add_argument("--lqr-speeds", type=float, nargs="*", default=[], help="unicycle: riding LQRs (m/s) to compare under the same model")
+    args = parser.parse_args(argv)
+    torch.set_num_threads(1)
+
+    uri = resolve_tracking_uri(args.tracking_uri)
+    client = open_client(uri)
+    run = client.get_run(args.run_id)
+    params = run.data.params
+    if not params.get("learner", "").startswith("pilco"):
+        sys.exit(f"run {args.run_id} is a {params.get('learner')!r} run; this check needs a PILCO run")
+    trials = sorted(int(a.path[len("trial"):]) for a in client.list_artifacts(args.run_id) if a.is_dir and a.path.startswith("trial"))
+    trial = args.trial if args.trial is not None else max(trials)
+    task = load_task(params["task"])(**{k[5:]: v for k, v in params.items() if k.startswith("task.") and v != "None"})
+    spec = task.spec
+    with tempfile.TemporaryDirectory() as tmp:
+        folder = f"trial{trial:03d}"
+        model_file = client.download_artifacts(args.run_id, f"{folder}/model_trial{trial:03d}.pt", tmp)
+        policy_file = client.download_artifacts(args.run_id, f"policies/policy_trial{trial:03d}.pkl", tmp)
+        saved = torch.load(model_file, weights_only=False)
+        settings_file = client.download_artifacts(args.run_id, "trial001/pilco_settings.json", tmp)
+        settings = json.loads(Path(settings_file).read_text())
+        policy = load_learner(params["learner"]).load_policy(Path(policy_file))
+    model = GPModel()
+    model.load_state_dict(saved["gp"])
+    horizon = int(settings["planning_horizon"])
+    evaluator = Evaluator(task, n_episodes=args.episodes, seed=200_000)
+
+    def check(policy) -> tuple[np.ndarray, np.ndarray, np.ndarray, float]:
+        objective = PolicyObjective(policy.controller, model.posterior(), policy.layout, spec.cost, spec.init_mean,
+                                    spec.init_cov, horizon, mean_only=bool(settings["mean_only"]))
+        with torch.no_grad():
+            closed = objective.step_costs()[0].numpy()
+        return (closed, sampled_costs(objective, args.particles, seed=0), *real_costs(evaluator, policy, horizon))
+
+    closed, sampled, real, success = check(policy)
+    references = []
+    for speed in args.lqr_speeds:
+        from plugins.pilco.learner import linear_policy_from_gain
+        from tasks.unicycle_lqr import riding_lqr
+
+        c, smp, r, ok = check(linear_policy_from_gain(spec, *riding_lqr(task, speed)))
+        references.append((f"riding LQR {speed:g} m/s", c.sum(), smp.sum(), r.sum(), ok))
+
+    command = "python benchmarks/pilco_prediction_check.py " + " ".join(argv if argv is not None else sys.argv[1:])
+    steps = sorted({1, 2, 5, 10, 15, 20, 30, 40, 50, horizon} & set(range(1, horizon + 1)))
+    lines = [
+        f"# Prediction check: {params['learner']} on {params['task']}, run `{args.run_id}`, trial {trial}", "",
+        f"Command: `{command.strip()}`  ",
+        f"Task options: {', '.join(f'{k[5:]}={v}' for k, v in sorted(params.items()) if k.startswith('task.')) or 'defaults'}; "
+        f"GP on {int(saved['gp']['inputs'].shape[0])} points; planning horizon {horizon}.", "",
+        "Expected cost of the policy handed over at this trial, per predicted step: **closed form** = PILCO's "
+        "moment matching (what the policy search minimised); **sampled** = the same GP and policy by Monte Carlo "
+        f"({args.particles} particles); **real** = the real task ({args.episodes} episodes, a fall held to the end). "
+        "closed form - sampled: error of the Gaussian approximation; sampled - real: model bias.", "",
+        "| | closed form | sampled (same model) | real |", "|---|---|---|---|",
+        f"| J = sum over {horizon} steps | {closed.sum():.2f} | {sampled.sum():.2f} | {real.sum():.2f} |",
+    ]
+    lines += [f"| step {t} | {closed[t - 1]:.3f} | {sampled[t - 1]:.3f} | {real[t - 1]:.3f} |" for t in steps]
+    lines += ["", f"Real success rate of this policy: {100 * success:.1f} % of {args.episodes} episodes."]
+    if references:
+        lines += ["", "Under the same model, reference policies (J = sum over the horizon):", "",
+                  "| policy | closed form | sampled (same model) | real | real success |", "|---|---|---|---|---|",
+                  f"| learned (trial {trial}) | {closed.sum():.2f} | {sampled.sum():.2f} | {real.sum():.2f} | {100 * success:.1f} % |"]
+        lines += [f"| {n} | {c:.2f} | {smp:.2f} | {r:.2f} | {100 * ok:.1f} % |" for n, c, smp, r, ok in references]
+    args.out.mkdir(parents=True, exist_ok=True)
+    out = args.out / f"prediction_check_{params['task']}_{args.run_id[:8]}_t{trial}.md"
+    out.write_text("\n".join(lines) + "\n")
+    print("\n".join(lines))
+    print(f"wrote {out}")
+
+
+if __name__ == "__main__":
+    main()
