@@ -383,6 +383,7 @@ def test_rows(client, task: str, label: str, runs: Sequence[RunRecord]) -> list[
         metrics = client.get_run(r.run_id).data.metrics
         if "test_success_rate" in metrics:
             rows.append({"task": task, "learner": label, "seed": r.seed, "solved": r.solved,
+                         "finished": r.status in ("FINISHED", "FAILED"),
                          "test_episodes": int(metrics.get("test_episodes", 0)),
                          "test_success_rate": metrics["test_success_rate"], "run_id": r.run_id})
     return rows
@@ -395,7 +396,8 @@ def test_markdown(task: str, rows: Sequence[dict[str, Any]]) -> str:
              f"representative tested run is `fig4b_{task}_<learner>.png` (the paper's Fig. 4b for the unicycle).", "",
              "| learner | seed | solved in training | test episodes | test success rate | run |", "|---|---|---|---|---|---|"]
     for r in rows:
-        lines.append(f"| {r['learner']} | {r['seed']} | {'yes' if r['solved'] else 'no'} | {r['test_episodes']} "
+        training = "yes" if r["solved"] else ("no" if r["finished"] else "no (run stopped before its limit)")
+        lines.append(f"| {r['learner']} | {r['seed']} | {training} | {r['test_episodes']} "
                      f"| {100 * r['test_success_rate']:.1f} % | `{r['run_id'][:8]}` |")
     return "\n".join(lines) + "\n"
 
@@ -641,6 +643,9 @@ def make_report(
         rows = [row for label, runs in by_label.items() for row in run_rows(task, label, runs)]
         (out / f"runs_{task}.md").write_text(runs_markdown(task, rows))
         written += [out / f"runs_{task}.md", write_csv(out / f"runs_{task}.csv", rows, RUNS_FIELDS)]
+
+    # plots and tests of saved policies: runs stopped before their limit have real policies too
+    for task, by_label in groups([*data.runs, *data.incomplete]).items():
         tested: list[dict[str, Any]] = []
         for label, runs in by_label.items():
             plot = copy_prediction_plot(client, task, label, runs, out)

@@ -268,3 +268,13 @@ def test_bench_runs_are_grouped_by_configuration(swept, tmp_path, monkeypatch):
     bench = {label: row for label, row in rows.items() if "@bench-" in label}
     assert sorted((r["runs"], r["solved"], float(r["median_time_to_success_s"])) for r in bench.values()) == [("1", "1", 4.0), ("2", "2", 6.0)]
     assert "harness bench --learner sweep-steps --task sweep-toy --seed S --max-trials 2 --eval-episodes 2  (S = 2-3" in (out / "sweeps.md").read_text()
+
+
+def test_test_table_marks_runs_stopped_before_their_limit():
+    from harness.report import test_markdown
+
+    rows = [{"learner": "pilco", "seed": 0, "solved": False, "finished": False, "test_episodes": 1000, "test_success_rate": 0.0, "run_id": "abcdef123"},
+            {"learner": "pilco", "seed": 1, "solved": True, "finished": True, "test_episodes": 1000, "test_success_rate": 0.931, "run_id": "bcdefa234"}]
+    md = test_markdown("unicycle", rows)
+    assert "| pilco | 0 | no (run stopped before its limit) | 1000 | 0.0 % | `abcdef12` |" in md
+    assert "| pilco | 1 | yes | 1000 | 93.1 % | `bcdefa23` |" in md
