@@ -68,6 +68,9 @@ def main(debug: bool) -> None:
     ``harness.tasks``. Results go to MLflow (default: ./mlflow.db, no server needed).
     """
     _Context.debug = debug
+    from harness.interrupts import terminate_as_interrupt
+
+    terminate_as_interrupt()  # `kill PID` / a scheduler's SIGTERM: the Ctrl-C path (run KILLED, resume hint)
 
 
 @main.command("list")

@@ -307,8 +307,12 @@ def _single_thread() -> None:
 
 
 def run_cell(job: CellJob) -> CellOutcome:
-    """Run one cell as a child of the sweep's parent run; never raises for a failing learner."""
+    """Run one cell as a child of the sweep's parent run; never raises for a failing learner
+    (SIGTERM to the worker raises ``KeyboardInterrupt``: the runner marks the child KILLED)."""
+    from harness.interrupts import terminate_as_interrupt
+
     _single_thread()
+    terminate_as_interrupt()
     from harness.errors import CheckpointError
     from harness.progress import SilentProgress
     from harness.runner import RunConfig, run
@@ -392,6 +396,7 @@ class LocalPool:
         self.workers = workers
         self._broken = False
         self._pool = self._new()
+        self._futures: list = []
 
     def _new(self):
         import multiprocessing
@@ -400,7 +405,9 @@ class LocalPool:
         return ProcessPoolExecutor(self.workers, mp_context=multiprocessing.get_context("spawn"), max_tasks_per_child=1)
 
     def submit(self, job: CellJob):
-        return self._pool.submit(run_cell, job)
+        future = self._pool.submit(run_cell, job)
+        self._futures = [f for f in self._futures if not f.done()] + [future]
+        return future
 
     def wait(self, handles, timeout):
         from concurrent.futures import FIRST_COMPLETED, wait
@@ -423,7 +430,24 @@ class LocalPool:
             self._broken = False
 
     def close(self, cancel: bool) -> None:
+        """Shut the pool down; ``cancel``: drop queued cells and, if cells are still running, stop
+        the workers with SIGTERM (each marks its run KILLED, resumable), killing a worker that
+        has not exited after :data:`WORKER_STOP_SECONDS`. Idle workers are left to the pool's
+        own shutdown: one stopped while it waits for work can leave the pool's queue locked."""
+        if cancel and any(not f.done() for f in self._futures):
+            workers = [p for p in (getattr(self._pool, "_processes", None) or {}).values() if p.is_alive()]
+            for process in workers:
+                process.terminate()
+            deadline = time.monotonic() + WORKER_STOP_SECONDS
+            for process in workers:
+                process.join(max(deadline - time.monotonic(), 0.0))
+                if process.is_alive():
+                    process.kill()
         self._pool.shutdown(wait=not cancel, cancel_futures=cancel)
+
+
+#: seconds a cancelled local worker gets to mark its run KILLED before it is killed
+WORKER_STOP_SECONDS = 60.0
 
 
 class RayPool:

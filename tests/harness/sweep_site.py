@@ -9,7 +9,8 @@
   each), then the solving one; with ``--max-trials 2`` run seeds 2, 3, 4 (learner seeds
   ``derive_seeds(s)["learner"] % 3`` = 0, 1, 2) solve after 4 s, after 8 s, and not at all;
 * learner ``sweep-boom``: raises ``RuntimeError("boom in the learner")`` after one episode;
-* learner ``sweep-crash``: its process exits (``os._exit(3)``) after one hand-over.
+* learner ``sweep-crash``: its process exits (``os._exit(3)``) after one hand-over;
+* learner ``sweep-slow``: a useless hand-over every 0.2 s until stopped (for interrupting sweeps).
 """
 
 from __future__ import annotations
@@ -57,6 +58,19 @@ class Crash(Learner):
         os._exit(3)
 
 
+class Slow(Learner):
+    name = "sweep-slow"
+    description = "test learner: a useless hand-over every 0.2 s, for as long as it is allowed"
+
+    def learn(self, interaction):
+        import time
+
+        while True:
+            interaction.rollout(Proportional(0.0))
+            time.sleep(0.2)
+            yield Proportional(0.0)
+
+
 class Boom(Learner):
     name = "sweep-boom"
     description = "test learner: raises after one episode"
@@ -71,6 +85,7 @@ ENTRY_POINTS = """[harness.learners]
 sweep-steps = sweep_test_plugins:SeedSteps
 sweep-boom = sweep_test_plugins:Boom
 sweep-crash = sweep_test_plugins:Crash
+sweep-slow = sweep_test_plugins:Slow
 
 [harness.tasks]
 sweep-toy = sweep_test_plugins:SweepToy

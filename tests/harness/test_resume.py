@@ -120,3 +120,29 @@ def test_sigkill_mid_trial_then_resume_matches_uninterrupted(tmp_path, mlflow_ur
     ref_id = next(r for r in runs["run_id"] if r != run_id)
     for key in ("eval_cost", "interaction_seconds", "J_after", "eval_success_rate"):
         assert _metric_history(mlflow_uri, run_id, key) == _metric_history(mlflow_uri, ref_id, key), key
+
+
+def test_sigterm_marks_the_run_killed_and_prints_how_to_resume(tmp_path, mlflow_uri):
+    """`kill PID` on `harness bench`: the Ctrl-C path (run KILLED, resume command), not an abrupt end."""
+    import mlflow
+
+    args = ["bench", "-l", "random", "-t", "cartpole", "--seed", "21", "--max-trials", "5000", "--eval-episodes", "1",
+            "--tracking-uri", mlflow_uri]
+    proc = subprocess.Popen([sys.executable, "-m", "harness", *args], cwd=tmp_path, env=dict(os.environ, PYTHONUNBUFFERED="1"),
+                            stderr=subprocess.PIPE, stdout=subprocess.PIPE, text=True)
+    deadline, seen = time.time() + 120, ""
+    while time.time() < deadline:
+        line = proc.stderr.readline()
+        seen += line
+        if "trial 2/5000" in line:
+            break
+    else:
+        proc.kill()
+        pytest.fail(f"the run did not reach trial 2 in time: {seen}")
+    proc.send_signal(signal.SIGTERM)
+    _, err = proc.communicate(timeout=60)
+    assert proc.returncode == 130, err
+    mlflow.set_tracking_uri(mlflow_uri)
+    runs = mlflow.search_runs(experiment_names=["cartpole"], filter_string="params.seed = '21' AND params.learner = 'random'")
+    assert len(runs) == 1 and runs.iloc[0]["status"] == "KILLED"
+    assert f"marked KILLED; continue it with the same command plus --resume {runs.iloc[0]['run_id']}" in err

@@ -50,3 +50,42 @@ def test_a_dying_worker_process_is_reported_and_replaced(plugins, mlflow_uri):
     crashed = open_client(mlflow_uri).get_run(outcome["sweep-crash"].run_id)  # the run the dead worker had started
     assert crashed.info.status == "KILLED" and crashed.data.tags["harness.error"].startswith("worker process died")
     assert crashed.data.metrics["interaction_seconds"] == 4.0  # its first hand-over was logged before the crash
+
+
+def test_sigterm_to_the_driver_stops_the_workers_and_marks_the_runs_killed(plugins, mlflow_uri):
+    """`kill DRIVER_PID` (SIGTERM to the driver alone): the driver stops its running workers, each
+    marks its run KILLED (resumable), the parent is KILLED and the command exits with 130."""
+    import os
+    import signal
+    import subprocess
+    import sys
+    import time
+
+    args = [sys.executable, "-m", "harness", "sweep", "--learners", "sweep-slow", "--tasks", "sweep-toy", "--seeds", "0-1",
+            "--max-trials", "5000", "--eval-episodes", "1", "--workers", "2", "--tracking-uri", mlflow_uri, "--quiet"]
+    proc = subprocess.Popen(args, env=dict(os.environ), stdout=subprocess.PIPE, stderr=subprocess.PIPE, text=True)
+    client = open_client(mlflow_uri)
+    spec = SweepSpec(("sweep-slow",), ("sweep-toy",), (0, 1), max_trials=5000, eval_episodes=1)
+    deadline = time.time() + 120
+    while time.time() < deadline:  # both cells running and past their first hand-over
+        experiment = client.get_experiment_by_name(SWEEP_EXPERIMENT)
+        children = [] if experiment is None else client.search_runs(
+            [experiment.experiment_id], f"tags.`harness.sweep_id` = '{spec.sweep_id}' AND tags.`harness.role` = 'cell'")
+        if len(children) == 2 and all(client.get_metric_history(r.info.run_id, "interaction_seconds") for r in children):
+            break
+        time.sleep(0.5)
+    else:
+        proc.kill()
+        raise AssertionError(f"the cells did not start in time: {proc.communicate()}")
+    proc.send_signal(signal.SIGTERM)
+    try:  # workers get up to WORKER_STOP_SECONDS to mark their runs; a loaded CI machine is slow
+        out, err = proc.communicate(timeout=180)
+    except subprocess.TimeoutExpired:
+        proc.kill()
+        raise AssertionError(f"the driver did not exit within 180 s of SIGTERM: {proc.communicate()}") from None
+    assert proc.returncode == 130, (out, err)
+    assert "interrupted" in err and "Traceback" not in err
+    children = client.search_runs([experiment.experiment_id], f"tags.`harness.sweep_id` = '{spec.sweep_id}' AND tags.`harness.role` = 'cell'")
+    assert sorted(r.info.status for r in children) == ["KILLED", "KILLED"]
+    parent = client.search_runs([experiment.experiment_id], f"tags.`harness.sweep_id` = '{spec.sweep_id}' AND tags.`harness.role` = 'sweep'")
+    assert [r.info.status for r in parent] == ["KILLED"]
