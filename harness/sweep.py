@@ -434,7 +434,8 @@ class LocalPool:
         the workers with SIGTERM (each marks its run KILLED, resumable), killing a worker that
         has not exited after :data:`WORKER_STOP_SECONDS`. Idle workers are left to the pool's
         own shutdown: one stopped while it waits for work can leave the pool's queue locked."""
-        if cancel and any(not f.done() for f in self._futures):
+        running = cancel and any(not f.done() for f in self._futures)
+        if running:
             workers = [p for p in (getattr(self._pool, "_processes", None) or {}).values() if p.is_alive()]
             for process in workers:
                 process.terminate()
@@ -443,7 +444,9 @@ class LocalPool:
                 process.join(max(deadline - time.monotonic(), 0.0))
                 if process.is_alive():
                     process.kill()
-        self._pool.shutdown(wait=not cancel, cancel_futures=cancel)
+        # nothing running: wait for the pool's own clean exit (not waiting leaves its manager thread
+        # to find the process table cleared under it); stopped workers: do not wait on their queue
+        self._pool.shutdown(wait=not running, cancel_futures=cancel)
 
 
 #: seconds a cancelled local worker gets to mark its run KILLED before it is killed
