@@ -82,24 +82,27 @@ def _metric_history(uri: str, run_id: str, key: str) -> list[float]:
     return [by_step[s] for s in sorted(by_step)]  # a trial logged again after the resume counts once
 
 
+def _bench_until(args: list[str], marker: str, cwd, timeout: float) -> subprocess.Popen:
+    """Start ``harness <args>`` and return once its progress output shows ``marker``."""
+    proc = subprocess.Popen([sys.executable, "-m", "harness", *args], cwd=cwd, env=dict(os.environ, PYTHONUNBUFFERED="1"),
+                            stderr=subprocess.PIPE, stdout=subprocess.PIPE, text=True)
+    deadline, seen = time.time() + timeout, ""
+    while time.time() < deadline:
+        line = proc.stderr.readline()
+        seen += line
+        if marker in line:
+            return proc
+    proc.kill()
+    pytest.fail(f"the run did not show {marker!r} in time: {seen}")
+
+
 def test_sigkill_mid_trial_then_resume_matches_uninterrupted(tmp_path, mlflow_uri):
     """A real `harness bench` process killed with SIGKILL during trial 3 is resumed with --resume."""
     import mlflow
 
     args = ["bench", "-l", "pilco", "-t", "cartpole", "--seed", "9", "--max-trials", "5", "--eval-episodes", "2",
             "--tracking-uri", mlflow_uri, "--set", "horizon=10"] + sum((["--set", f"{k}={v}"] for k, v in PILCO_TINY.items()), [])
-    env = dict(os.environ, PYTHONUNBUFFERED="1")
-    proc = subprocess.Popen([sys.executable, "-m", "harness", *args], cwd=tmp_path, env=env, stderr=subprocess.PIPE, stdout=subprocess.PIPE, text=True)
-    deadline = time.time() + 240
-    seen = ""
-    while time.time() < deadline:
-        line = proc.stderr.readline()
-        seen += line
-        if "trial 2/5" in line:
-            break
-    else:
-        proc.kill()
-        pytest.fail(f"the run did not reach trial 2 in time: {seen}")
+    proc = _bench_until(args, "trial 2/5", tmp_path, timeout=240)
     time.sleep(0.5)  # now inside trial 3 (its rollout / model learning)
     proc.send_signal(signal.SIGKILL)
     proc.wait(timeout=30)
@@ -128,17 +131,7 @@ def test_sigterm_marks_the_run_killed_and_prints_how_to_resume(tmp_path, mlflow_
 
     args = ["bench", "-l", "random", "-t", "cartpole", "--seed", "21", "--max-trials", "5000", "--eval-episodes", "1",
             "--tracking-uri", mlflow_uri]
-    proc = subprocess.Popen([sys.executable, "-m", "harness", *args], cwd=tmp_path, env=dict(os.environ, PYTHONUNBUFFERED="1"),
-                            stderr=subprocess.PIPE, stdout=subprocess.PIPE, text=True)
-    deadline, seen = time.time() + 120, ""
-    while time.time() < deadline:
-        line = proc.stderr.readline()
-        seen += line
-        if "trial 2/5000" in line:
-            break
-    else:
-        proc.kill()
-        pytest.fail(f"the run did not reach trial 2 in time: {seen}")
+    proc = _bench_until(args, "trial 2/5000", tmp_path, timeout=120)
     proc.send_signal(signal.SIGTERM)
     _, err = proc.communicate(timeout=60)
     assert proc.returncode == 130, err
