@@ -36,10 +36,13 @@ sys.path.insert(0, str(ROOT))
 
 from harness.discovery import load_learner, load_task  # noqa: E402
 from harness.evaluation import Evaluator  # noqa: E402
+from harness.testrun import task_options  # noqa: E402
 from harness.tracking import open_client, resolve_tracking_uri  # noqa: E402
 from plugins.pilco.gp import GPModel  # noqa: E402
+from plugins.pilco.learner import linear_policy_from_gain  # noqa: E402
 from plugins.pilco.objective import PolicyObjective  # noqa: E402
 from plugins.pilco.sampling import sampled_costs  # noqa: E402
+from tasks.unicycle_lqr import riding_lqr  # noqa: E402
 
 
 def real_costs(evaluator: Evaluator, policy, horizon: int) -> tuple[np.ndarray, float]:
@@ -74,7 +77,7 @@ def main(argv: list[str] | None = None) -> None:
         sys.exit(f"run {args.run_id} is a {params.get('learner')!r} run; this check needs a PILCO run")
     trials = sorted(int(a.path[len("trial"):]) for a in client.list_artifacts(args.run_id) if a.is_dir and a.path.startswith("trial"))
     trial = args.trial if args.trial is not None else max(trials)
-    task = load_task(params["task"])(**{k[5:]: v for k, v in params.items() if k.startswith("task.") and v != "None"})
+    task = load_task(params["task"])(**task_options(params))
     spec = task.spec
     with tempfile.TemporaryDirectory() as tmp:
         folder = f"trial{trial:03d}"
@@ -99,9 +102,6 @@ def main(argv: list[str] | None = None) -> None:
     closed, sampled, real, success = check(policy)
     references = []
     for speed in args.lqr_speeds:
-        from plugins.pilco.learner import linear_policy_from_gain
-        from tasks.unicycle_lqr import riding_lqr
-
         c, smp, r, ok = check(linear_policy_from_gain(spec, *riding_lqr(task, speed)))
         references.append((f"riding LQR {speed:g} m/s", c.sum(), smp.sum(), r.sum(), ok))
 

@@ -36,7 +36,8 @@ class PolicyTestReport:
     summary_path: Path
 
 
-def _task_options(params: dict[str, str]) -> dict[str, str]:
+def task_options(params: dict[str, str]) -> dict[str, str]:
+    """The task variant options a run recorded (its ``task.*`` params, unset ones left out)."""
     return {k[len("task."):]: v for k, v in params.items() if k.startswith("task.") and v != "None"}
 
 
@@ -90,7 +91,7 @@ def evaluate_saved_policy(
     except Exception as exc:
         raise TrackingError(f"no run {run_id!r} in {uri}; list runs with `mlflow ui --backend-store-uri {uri}`") from exc
     params = run.data.params
-    task = load_task(params["task"])(**_task_options(params))
+    task = load_task(params["task"])(**task_options(params))
     artifact = _latest_policy(client, run_id, trial)
     out_dir = Path(out_dir) if out_dir is not None else Path(tempfile.mkdtemp(prefix="harness-eval-"))
     out_dir.mkdir(parents=True, exist_ok=True)
