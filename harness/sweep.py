@@ -25,13 +25,11 @@ and never stops the others.
 and hands the tracking URI, experiment id and parent run id to the workers, which only create
 their own runs.
 
-**Workers.** Every cell runs in a fresh, single-threaded process (local:
-``ProcessPoolExecutor`` with the spawn start method and ``max_tasks_per_child=1``; Ray:
-``max_calls=1``), so its result never depends on what ran before it in the same worker (global
-RNGs, torch state). A learner that raises fails its own cell only. A worker *process* that dies
-(crash, out of memory) is replaced; in the local pool, ``ProcessPoolExecutor`` also stops the
-cells running beside it at that moment: all of them are reported failed, their runs marked
-KILLED, and the next invocation continues them from their checkpoints. The driver keeps at most
+**Workers.** Every cell runs in a fresh, single-threaded process (local: one process started
+with the spawn method per cell; Ray: ``max_calls=1``), so its result never depends on what ran
+before it (global RNGs, torch state). A learner that raises fails its own cell only. A cell whose
+*process* dies (crash, out of memory, killed) is reported failed with its run marked KILLED, and
+the next invocation continues it from its checkpoint; the cells beside it go on. The driver keeps at most
 ``workers`` cells in flight; that bounded feeding is the only scheduling done here.
 """
 
@@ -384,69 +382,91 @@ class _Pool(Protocol):
 
     def result(self, handle: Any) -> CellOutcome: ...
 
-    def recover(self) -> None: ...
-
     def close(self, cancel: bool) -> None: ...
 
 
+class WorkerProcessDied(RuntimeError):
+    """A cell's process ended (crash, out of memory, killed) without handing back its outcome."""
+
+
+def _cell_process_main(job: CellJob, conn) -> None:
+    """Body of a local cell process: run the cell, send ``("outcome", CellOutcome)`` or
+    ``("error", exception)`` back; a stop request (SIGTERM, as ``KeyboardInterrupt``) ends it quietly
+    after the runner has marked the run KILLED."""
+    try:
+        message = ("outcome", run_cell(job))
+    except KeyboardInterrupt:
+        return
+    except Exception as exc:  # not a learner failure (run_cell records those): hand it to the driver
+        message = ("error", exc)
+    conn.send(message)
+    conn.close()
+
+
+class _CellProcess:
+    """One cell in its own spawned process, its outcome coming back over a one-way pipe."""
+
+    def __init__(self, context, job: CellJob) -> None:
+        self.reader, writer = context.Pipe(duplex=False)
+        self.process = context.Process(target=_cell_process_main, args=(job, writer), name=f"cell-{job.cell.seed}")
+        self.process.start()
+        writer.close()  # the child holds the only writer: its end is EOF here
+
+    def outcome(self) -> CellOutcome:
+        try:
+            kind, value = self.reader.recv() if self.reader.poll() else (None, None)
+        except EOFError:
+            kind, value = None, None
+        self.process.join()
+        self.reader.close()
+        if kind == "outcome":
+            return value
+        if kind == "error":
+            raise value
+        raise WorkerProcessDied(f"the cell's process exited with code {self.process.exitcode} before handing back its outcome")
+
+
 class LocalPool:
-    """``ProcessPoolExecutor`` (spawn, one cell per process); a crashed worker is replaced."""
+    """One spawned process per cell (fresh interpreter state, no pool machinery to break): at most
+    ``workers`` run at once, bounded by the sweep driver."""
 
     def __init__(self, workers: int) -> None:
-        self.workers = workers
-        self._broken = False
-        self._pool = self._new()
-        self._futures: list = []
-
-    def _new(self):
         import multiprocessing
-        from concurrent.futures import ProcessPoolExecutor
 
-        return ProcessPoolExecutor(self.workers, mp_context=multiprocessing.get_context("spawn"), max_tasks_per_child=1)
+        self.workers = workers
+        self._context = multiprocessing.get_context("spawn")
+        self._running: list[_CellProcess] = []
 
-    def submit(self, job: CellJob):
-        future = self._pool.submit(run_cell, job)
-        self._futures = [f for f in self._futures if not f.done()] + [future]
-        return future
+    def submit(self, job: CellJob) -> _CellProcess:
+        handle = _CellProcess(self._context, job)
+        self._running.append(handle)
+        return handle
 
     def wait(self, handles, timeout):
-        from concurrent.futures import FIRST_COMPLETED, wait
+        from multiprocessing.connection import wait
 
-        return list(wait(handles, timeout=timeout, return_when=FIRST_COMPLETED).done)
+        ready = set(wait([h.reader for h in handles] + [h.process.sentinel for h in handles], timeout=timeout))
+        return [h for h in handles if h.reader in ready or h.process.sentinel in ready]
 
-    def result(self, handle) -> CellOutcome:
-        from concurrent.futures.process import BrokenProcessPool
-
-        try:
-            return handle.result()
-        except BrokenProcessPool:
-            self._broken = True
-            raise
-
-    def recover(self) -> None:
-        if self._broken:
-            self._pool.shutdown(wait=True, cancel_futures=True)
-            self._pool = self._new()
-            self._broken = False
+    def result(self, handle: _CellProcess) -> CellOutcome:
+        self._running.remove(handle)
+        return handle.outcome()
 
     def close(self, cancel: bool) -> None:
-        """Shut the pool down; ``cancel``: drop queued cells and, if cells are still running, stop
-        the workers with SIGTERM (each marks its run KILLED, resumable), killing a worker that
-        has not exited after :data:`WORKER_STOP_SECONDS`. Idle workers are left to the pool's
-        own shutdown: one stopped while it waits for work can leave the pool's queue locked."""
-        running = cancel and any(not f.done() for f in self._futures)
-        if running:
-            workers = [p for p in (getattr(self._pool, "_processes", None) or {}).values() if p.is_alive()]
-            for process in workers:
-                process.terminate()
-            deadline = time.monotonic() + WORKER_STOP_SECONDS
-            for process in workers:
-                process.join(max(deadline - time.monotonic(), 0.0))
-                if process.is_alive():
-                    process.kill()
-        # nothing running: wait for the pool's own clean exit (not waiting leaves its manager thread
-        # to find the process table cleared under it); stopped workers: do not wait on their queue
-        self._pool.shutdown(wait=not running, cancel_futures=cancel)
+        """Stop the cells still running with SIGTERM (each marks its run KILLED, resumable), killing
+        one that has not exited after :data:`WORKER_STOP_SECONDS`."""
+        alive = [h.process for h in self._running if h.process.is_alive()]
+        for process in alive:
+            process.terminate()
+        deadline = time.monotonic() + WORKER_STOP_SECONDS
+        for process in alive:
+            process.join(max(deadline - time.monotonic(), 0.0))
+            if process.is_alive():
+                process.kill()
+                process.join()
+        for handle in self._running:
+            handle.reader.close()
+        self._running = []
 
 
 #: seconds a cancelled local worker gets to mark its run KILLED before it is killed
@@ -458,23 +478,34 @@ class RayPool:
 
     def __init__(self, workers: int | None, address: str | None) -> None:
         import logging
+        import signal
+        import threading
 
         import ray
 
         self._ray = ray
         self._owns = not ray.is_initialized()
+        self._refs: list = []
         if self._owns:
+            # ray.init replaces the SIGTERM handler with its own (exit at once); an application handler
+            # (the CLI's: SIGTERM takes the Ctrl-C path, runs marked KILLED) is put back afterwards
+            main_thread = threading.current_thread() is threading.main_thread()
+            previous = signal.getsignal(signal.SIGTERM) if main_thread else None
             if address is None:
                 os.environ.setdefault("RAY_AUTH_MODE", "disabled")  # embedded: no token files under ~/.ray
                 ray.init(num_cpus=workers, include_dashboard=False, log_to_driver=False, logging_level=logging.WARNING,
                          _temp_dir=os.path.join(tempfile.gettempdir(), f"ray-harness-{os.getuid()}"))
             else:
                 ray.init(address=address, log_to_driver=False, logging_level=logging.WARNING)
+            if callable(previous):
+                signal.signal(signal.SIGTERM, previous)
         self.workers = workers or max(1, int(ray.cluster_resources().get("CPU", 1)))
         self._remote = ray.remote(num_cpus=1, max_calls=1)(run_cell)
 
     def submit(self, job: CellJob):
-        return self._remote.remote(job)
+        ref = self._remote.remote(job)
+        self._refs.append(ref)
+        return ref
 
     def wait(self, handles, timeout):
         ready, _ = self._ray.wait(list(handles), num_returns=1, timeout=timeout)
@@ -483,10 +514,16 @@ class RayPool:
     def result(self, handle) -> CellOutcome:
         return self._ray.get(handle)
 
-    def recover(self) -> None:
-        pass
-
     def close(self, cancel: bool) -> None:
+        """``cancel``: cancel the unfinished cells (a running one gets ``KeyboardInterrupt`` and marks
+        its run KILLED, resumable) and give them :data:`WORKER_STOP_SECONDS` to do so; then stop
+        the embedded instance."""
+        if cancel:
+            pending = self._ray.wait(self._refs, num_returns=len(self._refs), timeout=0)[1] if self._refs else []
+            for ref in pending:
+                self._ray.cancel(ref)
+            if pending:
+                self._ray.wait(pending, num_returns=len(pending), timeout=WORKER_STOP_SECONDS)
         if self._owns:
             self._ray.shutdown()
 
@@ -815,14 +852,14 @@ def _drive(pool: _Pool, jobs: deque, workers: int, result: SweepResult, client, 
             try:
                 outcome = pool.result(handle)
             except Exception as exc:  # the worker process itself died (crash, out of memory, killed)
-                error = f"worker process died ({type(exc).__name__}: {exc}); re-run the sweep to retry".splitlines()[0]
+                cause = str(exc) if isinstance(exc, WorkerProcessDied) else f"{type(exc).__name__}: {exc}"
+                error = f"worker process died ({cause}); re-run the sweep to retry".splitlines()[0]
                 outcome = CellOutcome(job.cell, "failed", _mark_crashed(client, job, error), error=error)
             if outcome.status == "failed" and outcome.run_id is None:
                 outcome.run_id = _record_failed_child(client, job, outcome.error)
             durations.append(time.perf_counter() - t0)
             result.outcomes.append(outcome)
             progress.cell_done(outcome)
-        pool.recover()
     report()
 
 

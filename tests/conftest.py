@@ -20,6 +20,18 @@ def pytest_configure(config: pytest.Config) -> None:
         pass
 
 
+@pytest.fixture(autouse=True)
+def _restore_sigterm_handler():
+    """Tests that run the CLI in this process install its SIGTERM handler; the next test starts with
+    the handler the test process had."""
+    import signal
+
+    handler = signal.getsignal(signal.SIGTERM)
+    yield
+    if signal.getsignal(signal.SIGTERM) is not handler:
+        signal.signal(signal.SIGTERM, handler)
+
+
 @pytest.fixture(scope="session")
 def mlflow_uri(tmp_path_factory: pytest.TempPathFactory) -> str:
     """One SQLite store per test session (creating one costs ~2-3 s of schema migration)."""

@@ -130,9 +130,6 @@ class InlinePool:
     def result(self, handle):
         return handle.result()
 
-    def recover(self) -> None:
-        pass
-
     def close(self, cancel: bool) -> None:
         pass
 
@@ -179,3 +176,33 @@ def check_steps_cells(uri: str, result) -> None:
         else:
             assert "interaction_time_to_success" not in run.data.metrics
             assert run.data.metrics["interaction_seconds_total"] == 8.0
+
+
+def sweep_runs(uri: str, spec, role: str) -> list:
+    """The runs of sweep ``spec`` with ``harness.role`` ``role`` ("sweep": the parent, "cell": its children)."""
+    from harness.sweep import SWEEP_EXPERIMENT
+    from harness.tracking import open_client
+
+    client = open_client(uri)
+    experiment = client.get_experiment_by_name(SWEEP_EXPERIMENT)
+    if experiment is None:
+        return []
+    return client.search_runs([experiment.experiment_id],
+                              f"tags.`harness.sweep_id` = '{spec.sweep_id}' AND tags.`harness.role` = '{role}'")
+
+
+def wait_until_cells_run(uri: str, spec, proc, timeout: float) -> None:
+    """Return once every cell of ``spec`` has a child run past its first hand-over; fail with the
+    output of ``proc`` (a :class:`tests.processes.HarnessProcess`) after ``timeout`` s."""
+    import time
+
+    from harness.tracking import open_client
+
+    client = open_client(uri)
+    deadline = time.time() + timeout
+    while time.time() < deadline:
+        cells = sweep_runs(uri, spec, "cell")
+        if len(cells) == len(spec.cells()) and all(client.get_metric_history(r.info.run_id, "interaction_seconds") for r in cells):
+            return
+        time.sleep(0.5)
+    raise AssertionError(f"the cells did not start in time:\n{proc.output()}")

@@ -2,10 +2,7 @@
 
 from __future__ import annotations
 
-import os
 import signal
-import subprocess
-import sys
 import time
 from pathlib import Path
 
@@ -14,24 +11,11 @@ import pytest
 from harness.checkpoint import Checkpoint, load_checkpoint, save_checkpoint
 from harness.errors import CheckpointError
 from harness.runner import RunConfig, run
-from harness.tracking import MemoryTracker
+from tests.harness.trackers import InterruptAt
+from tests.processes import HarnessProcess, run_harness
 
 PILCO_TINY = {"num_centres": "4", "policy_max_evaluations": "6", "gp_max_evals": "20", "plots": "false"}
 NOT_WALL = lambda history: [{k: v for k, v in r.items() if "seconds" not in k or k == "interaction_seconds"} for r in history]
-
-
-class InterruptAt(MemoryTracker):
-    """Raises KeyboardInterrupt when trial ``step`` is logged (after its evaluation, before its checkpoint)."""
-
-    def __init__(self, step: int) -> None:
-        super().__init__()
-        self.step = step
-
-    def log_metrics(self, metrics, step):
-        if step == self.step and "eval_success_rate" in metrics:
-            self.step = -1
-            raise KeyboardInterrupt
-        super().log_metrics(metrics, step)
 
 
 @pytest.mark.parametrize(
@@ -82,42 +66,29 @@ def _metric_history(uri: str, run_id: str, key: str) -> list[float]:
     return [by_step[s] for s in sorted(by_step)]  # a trial logged again after the resume counts once
 
 
-def _bench_until(args: list[str], marker: str, cwd, timeout: float) -> subprocess.Popen:
-    """Start ``harness <args>`` and return once its progress output shows ``marker``."""
-    proc = subprocess.Popen([sys.executable, "-m", "harness", *args], cwd=cwd, env=dict(os.environ, PYTHONUNBUFFERED="1"),
-                            stderr=subprocess.PIPE, stdout=subprocess.PIPE, text=True)
-    deadline, seen = time.time() + timeout, ""
-    while time.time() < deadline:
-        line = proc.stderr.readline()
-        seen += line
-        if marker in line:
-            return proc
-    proc.kill()
-    pytest.fail(f"the run did not show {marker!r} in time: {seen}")
-
-
 def test_sigkill_mid_trial_then_resume_matches_uninterrupted(tmp_path, mlflow_uri):
     """A real `harness bench` process killed with SIGKILL during trial 3 is resumed with --resume."""
     import mlflow
 
     args = ["bench", "-l", "pilco", "-t", "cartpole", "--seed", "9", "--max-trials", "5", "--eval-episodes", "2",
             "--tracking-uri", mlflow_uri, "--set", "horizon=10"] + sum((["--set", f"{k}={v}"] for k, v in PILCO_TINY.items()), [])
-    proc = _bench_until(args, "trial 2/5", tmp_path, timeout=240)
-    time.sleep(0.5)  # now inside trial 3 (its rollout / model learning)
-    proc.send_signal(signal.SIGKILL)
-    proc.wait(timeout=30)
+    with HarnessProcess(args, tmp_path) as proc:
+        proc.wait_for("trial 2/5", timeout=240)
+        time.sleep(0.5)  # now inside trial 3 (its rollout / model learning)
+        proc.signal(signal.SIGKILL)
+        proc.wait(timeout=30)
 
     mlflow.set_tracking_uri(mlflow_uri)
     killed = mlflow.search_runs(experiment_names=["cartpole"], filter_string="params.seed = '9' AND params.learner = 'pilco'")
     assert len(killed) == 1 and killed.iloc[0]["status"] == "RUNNING"  # SIGKILL: nobody marked it
     run_id = killed.iloc[0]["run_id"]
 
-    resumed = subprocess.run([sys.executable, "-m", "harness", *args, "--resume"], cwd=tmp_path, capture_output=True, text=True, timeout=600)
-    assert resumed.returncode == 0, resumed.stderr
-    assert run_id in resumed.stdout  # the same run continued
+    code, output = run_harness([*args, "--resume"], tmp_path, timeout=600)
+    assert code == 0, output
+    assert run_id in output  # the same run continued
 
-    reference = subprocess.run([sys.executable, "-m", "harness", *args, "--quiet"], cwd=tmp_path, capture_output=True, text=True, timeout=600)
-    assert reference.returncode == 0, reference.stderr
+    code, output = run_harness([*args, "--quiet"], tmp_path, timeout=600)
+    assert code == 0, output
     runs = mlflow.search_runs(experiment_names=["cartpole"], filter_string="params.seed = '9' AND params.learner = 'pilco'")
     assert len(runs) == 2 and set(runs["status"]) == {"FINISHED"}
     ref_id = next(r for r in runs["run_id"] if r != run_id)
@@ -131,10 +102,12 @@ def test_sigterm_marks_the_run_killed_and_prints_how_to_resume(tmp_path, mlflow_
 
     args = ["bench", "-l", "random", "-t", "cartpole", "--seed", "21", "--max-trials", "5000", "--eval-episodes", "1",
             "--tracking-uri", mlflow_uri]
-    proc = _bench_until(args, "trial 2/5000", tmp_path, timeout=120)
-    proc.send_signal(signal.SIGTERM)
-    _, err = proc.communicate(timeout=60)
-    assert proc.returncode == 130, err
+    with HarnessProcess(args, tmp_path) as proc:
+        proc.wait_for("trial 2/5000", timeout=120)
+        proc.signal(signal.SIGTERM)
+        code = proc.wait(timeout=60)
+        err = proc.output()
+    assert code == 130, err
     mlflow.set_tracking_uri(mlflow_uri)
     runs = mlflow.search_runs(experiment_names=["cartpole"], filter_string="params.seed = '21' AND params.learner = 'random'")
     assert len(runs) == 1 and runs.iloc[0]["status"] == "KILLED"
