@@ -13,6 +13,8 @@ from __future__ import annotations
 
 import signal
 import threading
+from collections.abc import Iterator
+from contextlib import contextmanager
 
 
 def _raise_interrupt(signum: int, frame) -> None:
@@ -26,3 +28,28 @@ def terminate_as_interrupt() -> bool:
         return False
     signal.signal(signal.SIGTERM, _raise_interrupt)
     return True
+
+
+@contextmanager
+def held_interrupts() -> Iterator[None]:
+    """Hold SIGINT and SIGTERM until the block ends, then deliver the first one received to the
+    handler that was in place (Ctrl-C's ``KeyboardInterrupt``, :func:`terminate_as_interrupt`'s).
+
+    For writes that must not be cut in half: a metric batch or artifact upload to the tracking
+    store (an interrupt inside SQLAlchemy leaves a logged traceback and a rolled-back session), a
+    checkpoint. Off the main thread (where handlers cannot be set) the block runs unprotected.
+    """
+    if threading.current_thread() is not threading.main_thread():
+        yield
+        return
+    received: list[int] = []
+    previous = {signum: signal.getsignal(signum) for signum in (signal.SIGINT, signal.SIGTERM)}
+    for signum in previous:
+        signal.signal(signum, lambda signum, frame: received.append(signum))
+    try:
+        yield
+    finally:
+        for signum, handler in previous.items():
+            signal.signal(signum, handler)
+        if received:
+            signal.raise_signal(received[0])

@@ -32,6 +32,7 @@ from harness.discovery import load_learner, load_task
 from harness.errors import BudgetExhaustedError, CheckpointError, HarnessError, OptionError
 from harness.evaluation import Evaluator
 from harness.interaction import Interaction
+from harness.interrupts import held_interrupts
 from harness.learner import Learner
 from harness.progress import ProgressReporter, SilentProgress
 from harness.provenance import git_sha, package_versions
@@ -259,8 +260,9 @@ def run(
                 record.update(learner.metrics)
                 learner.metrics = {}
                 history.append({k: float(v) for k, v in record.items()})
-                tracker.log_metrics({k: v for k, v in record.items() if k != "trial"}, step=trial)
-                _log_trial_artifacts(tracker, learner, policy, interaction, workdir, trial)
+                with held_interrupts():  # a stop request waits for the trial's records to be stored whole
+                    tracker.log_metrics({k: v for k, v in record.items() if k != "trial"}, step=trial)
+                    _log_trial_artifacts(tracker, learner, policy, interaction, workdir, trial)
                 progress.update({**record, "max_trials": prep.max_trials}, completed=trial if prep.max_trials else interaction.seconds)
                 if result.solved:
                     solved_at = (interaction.seconds, len(interaction.episodes))
@@ -270,8 +272,9 @@ def run(
                     stop_reason = "max trials"
                     break
                 if learner.supports_resume:
-                    _save_checkpoint(tracker, workdir, Checkpoint(
-                        identity, trial, history, interaction.state_dict(), learner.state_dict(), global_rng_state()))
+                    with held_interrupts():
+                        _save_checkpoint(tracker, workdir, Checkpoint(
+                            identity, trial, history, interaction.state_dict(), learner.state_dict(), global_rng_state()))
         except BudgetExhaustedError:
             stop_reason = "budget"
         finally:
@@ -297,7 +300,8 @@ def run(
             stop_reason=stop_reason if status == "FINISHED" else status.lower(),
             history=history,
         )
-        _finish(tracker, run_result, interaction, workdir, status)
+        with held_interrupts():  # a second Ctrl-C must not cut the run's final records short
+            _finish(tracker, run_result, interaction, workdir, status)
         interaction.close()
         evaluator.close()
         if own_workdir:
