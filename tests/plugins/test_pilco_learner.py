@@ -58,6 +58,18 @@ def test_policy_search_budget_comes_from_the_task_preset():
     assert (cartpole.preset.policy_max_iterations, cartpole.preset.policy_max_evaluations) == (40, 300)
 
 
+def test_planning_horizon_and_cost_width_come_from_the_task_preset():
+    """dm_control cart-pole plans over 40 steps with a 0.42 m width; other tasks use the task's; options override."""
+    from tasks.dmc_cartpole import DMCCartpole
+
+    dmc = Pilco(DMCCartpole().spec, {}, seed=0)
+    assert (dmc.horizon, dmc.cost_width) == (40, 0.42) and dmc.spec.horizon == 100
+    cartpole = Pilco(CartPole().spec, {}, seed=0)
+    assert (cartpole.horizon, cartpole.cost_width) == (CartPole().spec.horizon, None)
+    overridden = Pilco(DMCCartpole().spec, {"planning_horizon": "100", "cost_width": "0.25"}, seed=0)
+    assert (overridden.horizon, overridden.cost_width) == (100, 0.25)
+
+
 def test_entry_points_and_ablation_flag():
     assert load_learner("pilco") is Pilco and load_learner("pilco-mean") is PilcoMean
     assert not Pilco.mean_only and PilcoMean.mean_only
