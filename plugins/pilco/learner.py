@@ -162,6 +162,15 @@ def _initial_policy_input_moments(spec: TaskSpec, layout: StateLayout) -> tuple[
     return ma[idx], sa[idx[:, None], idx[None, :]]
 
 
+def next_planning_horizon(horizon: int, task_horizon: int, search, grow_below: float | None) -> int:
+    """The planning horizon (steps) for the next trial: doubled, up to ``task_horizon``, when
+    ``grow_below`` is set and the search just done predicts a mean cost per step ``J/horizon``
+    below it (the policy already does well over the shorter horizon); otherwise unchanged."""
+    if grow_below is None or search is None or horizon >= task_horizon or search.J_after / horizon >= grow_below:
+        return horizon
+    return min(2 * horizon, task_horizon)
+
+
 def _initial_length_scales(layout: StateLayout) -> torch.Tensor:
     """Reference initial policy length-scales: 1 for plain states, 0.7 for sin/cos entries."""
     return torch.tensor([0.7 if i >= layout.state_dim else 1.0 for i in layout.policy_inputs], dtype=torch.float64)
@@ -183,6 +192,8 @@ class Pilco(Learner):
         Option("random_scale", float, None, "random controls in scale * bounds (default: task preset)", low=0.0, high=1.0),
         Option("planning_horizon", int, None, "predicted steps in J (default: the task preset's, else the task horizon)", low=1),
         Option("cost_width", float, None, "cost width used in planning (default: the task preset's, else the task's)", low=1e-6),
+        Option("grow_horizon_below", float, None, "double the planning horizon (up to the task's) after a policy search "
+               "whose predicted mean cost per step, J/horizon, is below this (a horizon schedule; default: off)", low=0.0),
         Option("sparse_threshold", int, None, "FITC above this many data points (default: task preset)", low=1),
         Option("num_pseudo", int, None, "FITC pseudo-inputs (default: the sparse threshold)", low=1),
         Option("gp_max_evals", int, 300, "GP hyperparameter L-BFGS evaluations per trial", low=0),
@@ -276,6 +287,7 @@ class Pilco(Learner):
             else:  # continue right after the hand-over of trial `trial`
                 controller.load_state_dict(resumed["controller"])
                 hyperparameters, trial, predicted = resumed["hyperparameters"], resumed["trial"], resumed["predicted"]
+                self.horizon = resumed.get("planning_horizon", self.horizon)
                 sampled = resumed.get("sampled")
             while True:
                 if trial > 0:  # apply the policy handed over last for one trial, record the data
@@ -304,8 +316,10 @@ class Pilco(Learner):
                     predicted = None
                 sampled = sampled_costs(objective, o["sample_particles"], seed=1000 * self.seed + trial) if o["sample_particles"] else None
                 self.metrics = self._trial_metrics(fit, search, failed, predicted, objective.num_params)
+                self.metrics["planning_horizon"] = float(self.horizon)
                 if sampled is not None:
                     self.metrics["J_sampled"] = float(sampled.sum())
+                self.horizon = next_planning_horizon(self.horizon, spec.horizon, search, o["grow_horizon_below"])
                 self.artifacts += self._save_model(workdir, trial, model, fit)
                 if trial == 1:
                     self.artifacts.append(self._save_settings(workdir))
@@ -315,6 +329,7 @@ class Pilco(Learner):
                     "trial": trial,
                     "predicted": predicted,
                     "sampled": sampled,
+                    "planning_horizon": self.horizon,
                 }
                 yield PilcoPolicy(copy.deepcopy(controller), self.layout)
         finally:

@@ -20,7 +20,9 @@ NOT_WALL = lambda history: [{k: v for k, v in r.items() if "seconds" not in k or
 
 @pytest.mark.parametrize(
     "learner,options,task_options",
-    [("random", {}, {}), ("pilco", PILCO_TINY, {"horizon": 10})],
+    [("random", {}, {}), ("pilco", PILCO_TINY, {"horizon": 10}),
+     # the planning horizon grows 3 -> 6 -> 10 over the trials: a resume must continue at the grown one
+     ("pilco", {**PILCO_TINY, "planning_horizon": "3", "grow_horizon_below": "10"}, {"horizon": 10})],
 )
 def test_resumed_run_equals_uninterrupted_run(learner, options, task_options):
     config = RunConfig(learner, "cartpole", seed=4, learner_options=options, task_options=task_options, max_trials=4, eval_episodes=2)
@@ -35,6 +37,8 @@ def test_resumed_run_equals_uninterrupted_run(learner, options, task_options):
     assert NOT_WALL(resumed.history) == NOT_WALL(reference.history)
     assert resumed.interaction_seconds == reference.interaction_seconds
     assert [s for s, _ in tracker.metrics["eval_cost"]] == [1, 2, 3, 4]
+    if "grow_horizon_below" in options:
+        assert [h for _, h in sorted(tracker.metrics["planning_horizon"])][-4:] == [3.0, 6.0, 10.0, 10.0]
 
 
 def test_resume_refuses_other_settings():

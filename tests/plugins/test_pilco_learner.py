@@ -70,6 +70,18 @@ def test_planning_horizon_and_cost_width_come_from_the_task_preset():
     assert (overridden.horizon, overridden.cost_width) == (100, 0.25)
 
 
+def test_horizon_schedule_doubles_up_to_the_task_horizon_when_the_policy_does_well():
+    from types import SimpleNamespace
+
+    from plugins.pilco.learner import next_planning_horizon
+
+    good, poor = SimpleNamespace(J_after=1.0), SimpleNamespace(J_after=10.0)  # 0.05 and 0.5 per step over 20
+    assert next_planning_horizon(20, 67, good, 0.1) == 40
+    assert next_planning_horizon(40, 67, good, 0.1) == 67 and next_planning_horizon(67, 67, good, 0.1) == 67
+    assert next_planning_horizon(20, 67, poor, 0.1) == 20
+    assert next_planning_horizon(20, 67, good, None) == 20 and next_planning_horizon(20, 67, None, 0.1) == 20
+
+
 def test_entry_points_and_ablation_flag():
     assert load_learner("pilco") is Pilco and load_learner("pilco-mean") is PilcoMean
     assert not Pilco.mean_only and PilcoMean.mean_only
