@@ -518,12 +518,13 @@ class RayPool:
         """``cancel``: cancel the unfinished cells (a running one gets ``KeyboardInterrupt`` and marks
         its run KILLED, resumable) and give them :data:`WORKER_STOP_SECONDS` to do so; then stop
         the embedded instance."""
-        if cancel:
-            pending = self._ray.wait(self._refs, num_returns=len(self._refs), timeout=0)[1] if self._refs else []
+        if cancel and self._refs:
+            pending = self._ray.wait(self._refs, num_returns=len(self._refs), timeout=0)[1]
             for ref in pending:
                 self._ray.cancel(ref)
             if pending:
                 self._ray.wait(pending, num_returns=len(pending), timeout=WORKER_STOP_SECONDS)
+        self._refs = []
         if self._owns:
             self._ray.shutdown()
 
@@ -739,16 +740,21 @@ def _mark_crashed(client, job: CellJob, error: str) -> str:
     continues it from its last checkpoint); without one, a FAILED child records the error."""
     from mlflow.entities import RunTag
 
+    run_id = _running_child(client, job)
+    if run_id is None:
+        return _record_failed_child(client, job, error)
+    client.log_batch(run_id, tags=[RunTag(ERROR_TAG, error[:5000])])
+    client.set_terminated(run_id, "KILLED")
+    return run_id
+
+
+def _running_child(client, job: CellJob) -> str | None:
+    """The newest child run of ``job``'s cell still marked RUNNING, if any."""
     cell = job.cell
     running = _search_all(client, job.experiment_id, (
         f"tags.`mlflow.parentRunId` = '{job.parent_run_id}' AND tags.learner = '{cell.learner}' AND tags.task = '{cell.task}' "
         f"AND tags.seed = '{cell.seed}' AND attributes.status = 'RUNNING'"))
-    if not running:
-        return _record_failed_child(client, job, error)
-    run_id = max(running, key=lambda r: r.info.start_time).info.run_id
-    client.log_batch(run_id, tags=[RunTag(ERROR_TAG, error[:5000])])
-    client.set_terminated(run_id, "KILLED")
-    return run_id
+    return max(running, key=lambda r: r.info.start_time).info.run_id if running else None
 
 
 def run_sweep(
@@ -840,26 +846,36 @@ def _drive(pool: _Pool, jobs: deque, workers: int, result: SweepResult, client, 
             eta = None
         progress.update(done, len(inflight), len(result.failed), eta)
 
-    while jobs or inflight:
-        while jobs and len(inflight) < workers:
-            job = jobs.popleft()
-            inflight[pool.submit(job)] = (job, time.perf_counter())
-        report()
-        if watcher is not None:
-            watcher.poll(progress)
-        for handle in pool.wait(list(inflight), timeout=1.0):
-            job, t0 = inflight.pop(handle)
-            try:
-                outcome = pool.result(handle)
-            except Exception as exc:  # the worker process itself died (crash, out of memory, killed)
-                cause = str(exc) if isinstance(exc, WorkerProcessDied) else f"{type(exc).__name__}: {exc}"
-                error = f"worker process died ({cause}); re-run the sweep to retry".splitlines()[0]
-                outcome = CellOutcome(job.cell, "failed", _mark_crashed(client, job, error), error=error)
-            if outcome.status == "failed" and outcome.run_id is None:
-                outcome.run_id = _record_failed_child(client, job, outcome.error)
-            durations.append(time.perf_counter() - t0)
-            result.outcomes.append(outcome)
-            progress.cell_done(outcome)
+    try:
+        while jobs or inflight:
+            while jobs and len(inflight) < workers:
+                job = jobs.popleft()
+                inflight[pool.submit(job)] = (job, time.perf_counter())
+            report()
+            if watcher is not None:
+                watcher.poll(progress)
+            for handle in pool.wait(list(inflight), timeout=1.0):
+                job, t0 = inflight.pop(handle)
+                try:
+                    outcome = pool.result(handle)
+                except Exception as exc:  # the worker process itself died (crash, out of memory, killed)
+                    cause = str(exc) if isinstance(exc, WorkerProcessDied) else f"{type(exc).__name__}: {exc}"
+                    error = f"worker process died ({cause}); re-run the sweep to retry".splitlines()[0]
+                    outcome = CellOutcome(job.cell, "failed", _mark_crashed(client, job, error), error=error)
+                if outcome.status == "failed" and outcome.run_id is None:
+                    outcome.run_id = _record_failed_child(client, job, outcome.error)
+                durations.append(time.perf_counter() - t0)
+                result.outcomes.append(outcome)
+                progress.cell_done(outcome)
+    except KeyboardInterrupt:
+        # stop the running cells (each normally marks its run KILLED itself); a cell stopped before it
+        # could (a force-killed process, a Ray task whose result came back cancelled first) is marked here
+        pool.close(cancel=True)
+        for job, _ in inflight.values():
+            run_id = _running_child(client, job)
+            if run_id is not None:
+                client.set_terminated(run_id, "KILLED")
+        raise
     report()
 
 

@@ -51,7 +51,7 @@ class HarnessProcess:
                 return
             if self.proc.poll() is not None:
                 raise AssertionError(f"the command ended (exit {self.proc.returncode}) before printing {marker!r}:\n{self.output()}")
-            time.sleep(0.2)
+            time.sleep(0.05)
         raise AssertionError(f"{marker!r} not printed within {timeout} s:\n{self.output()}")
 
     def signal(self, signum: int) -> None:

@@ -151,3 +151,32 @@ def test_trial_watcher_reports_each_new_trial_of_running_cells_once(mlflow_uri):
     sweep.RichSweepProgress(console).trial("pilco-cartpole-s0", {"trial": 3, "interaction_seconds": 12.0, "eval_success_rate": 0.5,
                                                                  "eval_cost": 12.0, "wall_seconds": 21.0, "J_after": 17.0})
     assert "pilco-cartpole-s0: trial 3 | 12.0 s interaction | success 50% | eval cost 12.00 | J 17.00 | wall 21 s" in console.export_text()
+
+
+class _StoppedWhileRunning(sweep_site.InlinePool):
+    """A worker that started its cell's run and was then stopped without marking it (a force-killed
+    process, a Ray task whose cancelled result came back first); the next wait is the user's Ctrl-C."""
+
+    client = None
+
+    def submit(self, job):
+        self.client.create_run(job.experiment_id, run_name="stopped", tags={
+            "mlflow.parentRunId": job.parent_run_id, "learner": job.cell.learner, "task": job.cell.task,
+            "seed": str(job.cell.seed)})
+        return object()
+
+    def wait(self, handles, timeout):
+        raise KeyboardInterrupt
+
+
+def test_ctrl_c_marks_the_runs_of_cells_in_flight_killed(plugins, mlflow_uri, monkeypatch):
+    client = open_client(mlflow_uri)
+    monkeypatch.setattr(_StoppedWhileRunning, "client", client)
+    monkeypatch.setattr(sweep, "LocalPool", _StoppedWhileRunning)
+    spec = SweepSpec(("sweep-steps",), ("sweep-toy",), (11,), max_trials=2, eval_episodes=1)
+    with pytest.raises(KeyboardInterrupt):
+        run_sweep(spec, mlflow_uri)
+    experiment_id = client.get_experiment_by_name(sweep.SWEEP_EXPERIMENT).experiment_id
+    (child,) = client.search_runs([experiment_id], "attributes.run_name = 'stopped'")
+    assert child.info.status == "KILLED"  # resumable by the next invocation, not left RUNNING
+    assert [r.info.status for r in sweep_site.sweep_runs(mlflow_uri, spec, "sweep")] == ["KILLED"]
