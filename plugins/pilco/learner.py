@@ -319,10 +319,10 @@ class Pilco(Learner):
                 self.metrics["planning_horizon"] = float(self.horizon)
                 if sampled is not None:
                     self.metrics["J_sampled"] = float(sampled.sum())
-                self.horizon = next_planning_horizon(self.horizon, spec.horizon, search, o["grow_horizon_below"])
                 self.artifacts += self._save_model(workdir, trial, model, fit)
                 if trial == 1:
                     self.artifacts.append(self._save_settings(workdir))
+                self.horizon = next_planning_horizon(self.horizon, spec.horizon, search, o["grow_horizon_below"])
                 self._state = {
                     "controller": copy.deepcopy(controller.state_dict()),
                     "hyperparameters": hyperparameters,
