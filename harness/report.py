@@ -12,10 +12,15 @@ Reads the sweeps' child runs (see :mod:`harness.sweep` for the layout) and write
   interaction at which it stopped unsolved, trials, wall time, stop reason, run id);
 * ``curves_<task>.png`` / ``.csv``: evaluation success rate and cost vs interaction seconds
   (mean with band, and every run as a thin line);
-* ``prediction_<task>_<learner>.png``: for learners that log predicted-vs-realised cost plots
+* ``prediction_<task>_<row>.png``: for learners that log predicted-vs-realised cost plots
   (PILCO's ``prediction_trial*.png``), the last one of a representative run: the solved run with
   the median time to success (lower median), else the run with the most hand-overs;
 * ``sweeps.md``: which sweeps (ids, commands, store) the files were made from.
+
+Rows are named by learner. Where a learner ran on a task in several sweeps, each sweep's row is
+named by the settings its runs differ in (``pilco [horizon=30]`` beside ``pilco [horizon=40]``),
+or ``learner@<sweep id>`` when settings do not tell the sweeps apart; files named after a row use
+the same name as a slug (``prediction_cartpole_pilco_horizon-30.png``).
 
 With ``include_bench``, `harness bench` runs outside sweeps are reported too, grouped by
 configuration (learner, task, limits, resolved options) into pseudo-sweeps ``bench-<hash>``.
@@ -35,6 +40,7 @@ import csv
 import hashlib
 import json
 import math
+import re
 from collections import defaultdict
 from collections.abc import Sequence
 from dataclasses import dataclass, field
@@ -101,6 +107,8 @@ class RunRecord:
     label: str = ""
     #: interaction episodes at the run's last hand-over (random ones included)
     episodes: float | None = None
+    #: what the run was configured with: limits and resolved options (params ``learner.*``, ``task.*``)
+    config: dict[str, str] = field(default_factory=dict)
 
     @property
     def cell(self) -> tuple[str, str, int]:
@@ -110,6 +118,15 @@ class RunRecord:
 def _metric(metrics: dict[str, float], key: str) -> float | None:
     value = metrics.get(key)
     return None if value is None or not math.isfinite(value) else float(value)
+
+
+#: run params that say how a run was configured besides learner, task and seed
+_LIMIT_KEYS = ("max_trials", "budget_seconds", "eval_episodes")
+
+
+def run_config(params: dict[str, str]) -> dict[str, str]:
+    """The limits and resolved options among a run's params."""
+    return {k: v for k, v in params.items() if k in _LIMIT_KEYS or k.startswith(("learner.", "task."))}
 
 
 def record_from_run(run, sweep_id: str) -> RunRecord | None:
@@ -133,6 +150,7 @@ def record_from_run(run, sweep_id: str) -> RunRecord | None:
         state_dim=int(float(state_dim)) if state_dim not in (None, "") else None,
         error=tags.get(ERROR_TAG, ""),
         episodes=_metric(metrics, "interaction_episodes"),
+        config=run_config(params),
     )
 
 
@@ -168,10 +186,6 @@ def _sweep_groups(client) -> list[tuple[SweepInfo, list]]:
     return out
 
 
-#: the params that make two `harness bench` runs the same configuration (besides the seed)
-_BENCH_KEYS = ("learner", "task", "max_trials", "budget_seconds", "eval_episodes")
-
-
 def _bench_groups(client) -> list[tuple[SweepInfo, list]]:
     """`harness bench` runs (outside sweeps), grouped by configuration into pseudo-sweeps
     ``bench-<hash>``: same learner, task, limits and resolved options; seeds vary."""
@@ -183,8 +197,7 @@ def _bench_groups(client) -> list[tuple[SweepInfo, list]]:
         for run in _search_all(client, experiment.experiment_id, ""):
             if ROLE_TAG in run.data.tags or "learner" not in run.data.tags:
                 continue
-            params = run.data.params
-            config = {k: v for k, v in params.items() if k in _BENCH_KEYS or k.startswith(("learner.", "task."))}
+            config = {k: v for k, v in run.data.params.items() if k in ("learner", "task")} | run_config(run.data.params)
             blob = json.dumps(sorted(config.items()))
             group_id = "bench-" + hashlib.sha256(blob.encode()).hexdigest()[:8]
             grouped[group_id].append(run)
@@ -244,13 +257,55 @@ def select_run(records: Sequence[RunRecord]) -> RunRecord:
     return max(finished or records, key=lambda r: r.start_time)
 
 
+#: at most this many differing settings in a row label; more, and the label is ``learner@<sweep id>``
+LABEL_SETTINGS = 3
+
+
 def _label(records: Sequence[RunRecord]) -> None:
-    """Row label = learner; ``learner@<sweep id>`` where a learner-task pair is in several sweeps."""
-    sweeps_of: dict[tuple[str, str], set[str]] = defaultdict(set)
+    """Row label = learner. Where a learner-task pair is in several sweeps, each sweep's row is the
+    learner with the settings its runs differ in, e.g. ``pilco [horizon=30]`` beside
+    ``pilco [horizon=40]``; ``learner@<sweep id>`` where settings do not tell the sweeps apart."""
+    by_pair: dict[tuple[str, str], dict[str, list[RunRecord]]] = defaultdict(lambda: defaultdict(list))
     for r in records:
-        sweeps_of[(r.learner, r.task)].add(r.sweep_id)
-    for r in records:
-        r.label = r.learner if len(sweeps_of[(r.learner, r.task)]) == 1 else f"{r.learner}@{r.sweep_id}"
+        by_pair[(r.learner, r.task)][r.sweep_id].append(r)
+    for (learner, _), by_sweep in by_pair.items():
+        if len(by_sweep) == 1:
+            names = dict.fromkeys(by_sweep, learner)
+        else:
+            names = variant_labels(learner, {sweep: _shared_config(rs) for sweep, rs in by_sweep.items()})
+        for sweep, rs in by_sweep.items():
+            for r in rs:
+                r.label = names[sweep]
+
+
+def _shared_config(records: Sequence[RunRecord]) -> dict[str, str]:
+    """The settings every one of ``records`` was run with."""
+    shared = dict(records[0].config)
+    for r in records[1:]:
+        shared = {k: v for k, v in shared.items() if r.config.get(k) == v}
+    return shared
+
+
+def variant_labels(learner: str, configs: dict[str, dict[str, str]]) -> dict[str, str]:
+    """``sweep id -> label`` for several sweeps of one learner on one task, from each sweep's shared
+    settings (``configs``): the settings recorded in every sweep whose values differ, by their option
+    name (``task.horizon`` -> ``horizon``). Settings missing from a sweep (an option added after it
+    ran) are not compared. Falls back to ``learner@<sweep id>`` when the settings are the same or
+    too many differ (more than :data:`LABEL_SETTINGS`)."""
+    fallback = {sweep: f"{learner}@{sweep}" for sweep in configs}
+    recorded = set.intersection(*(set(c) for c in configs.values()))
+    differing = sorted(k for k in recorded if len({c[k] for c in configs.values()}) > 1)
+    if not differing or len(differing) > LABEL_SETTINGS:
+        return fallback
+    short = [k.split(".", 1)[-1] for k in differing]
+    names = [name if short.count(name) == 1 else key for key, name in zip(differing, short)]
+    labels = {sweep: f"{learner} [{', '.join(f'{n}={c[k]}' for n, k in zip(names, differing))}]" for sweep, c in configs.items()}
+    return labels if len(set(labels.values())) == len(labels) else fallback
+
+
+def file_slug(label: str) -> str:
+    """``label`` as a file-name part: ``pilco [horizon=30]`` -> ``pilco_horizon-30``."""
+    return re.sub(r"[^A-Za-z0-9._-]+", "_", label.replace("=", "-")).strip("_")
 
 
 def groups(runs: Sequence[RunRecord]) -> dict[str, dict[str, list[RunRecord]]]:
@@ -371,7 +426,7 @@ def copy_prediction_plot(client, task: str, label: str, runs: Sequence[RunRecord
         return None
     with tempfile.TemporaryDirectory() as tmp:
         local = client.download_artifacts(run.run_id, name, tmp)
-        target = out / f"prediction_{task}_{label.replace('@', '_')}.png"
+        target = out / f"prediction_{task}_{file_slug(label)}.png"
         shutil.copyfile(local, target)
     return target
 
@@ -418,7 +473,7 @@ def copy_test_histogram(client, task: str, label: str, runs: Sequence[RunRecord]
         return None
     with tempfile.TemporaryDirectory() as tmp:
         local = client.download_artifacts(run_id, names[0], tmp)
-        target = out / f"fig4b_{task}_{label.replace('@', '_')}.png"
+        target = out / f"fig4b_{task}_{file_slug(label)}.png"
         shutil.copyfile(local, target)
     return target
 
@@ -482,27 +537,34 @@ def comparison_markdown(task: str, rows: Sequence[dict[str, Any]]) -> str:
 
 def table1_rows(runs_by_task: dict[str, dict[str, list[RunRecord]]], learner: str,
                 incomplete: Sequence[RunRecord] = ()) -> list[dict[str, Any]]:
-    """Table 1 measured for ``learner`` on the paper's tasks that were run."""
+    """Table 1 measured for ``learner`` on the paper's tasks that were run: a row per task and row
+    label (several where the learner ran on a task in differently configured sweeps)."""
     rows = []
-    for task, (paper_task, p_state, p_trials, p_exp, p_params) in PAPER_TABLE1.items():
-        runs = runs_by_task.get(task, {}).get(learner, [])
-        stopped = [r for r in incomplete if r.task == task and r.learner == learner]
-        if not runs and not stopped:
-            continue
-        solved = [r for r in runs if r.solved]
-        dims = sorted({r.state_dim for r in [*runs, *stopped] if r.state_dim is not None})
-        rows.append({
-            "task": task, "paper_task": paper_task, "runs": len(runs), "solved": len(solved),
-            "stopped": len(stopped),
-            "stopped_episodes": _range([r.episodes for r in stopped if r.episodes is not None]),
-            "stopped_interaction_s": _range([r.interaction_seconds for r in stopped]),
-            "state_dim": "/".join(str(d) for d in dims) or "?",
-            "trials": _range([r.trials_to_success for r in solved if r.trials_to_success is not None]),
-            "experience_s": _range([r.time_to_success for r in solved if r.time_to_success is not None]),
-            "policy_parameters": _range([r.policy_parameters for r in [*runs, *stopped] if r.policy_parameters is not None]),
-            "paper": {"state": p_state, "trials": p_trials, "experience": p_exp, "parameters": p_params},
-        })
+    for task in PAPER_TABLE1:
+        counted = {label: runs for label, runs in runs_by_task.get(task, {}).items() if runs and runs[0].learner == learner}
+        labels = dict.fromkeys([*counted, *(r.label for r in incomplete if r.task == task and r.learner == learner)])
+        for label in labels:
+            runs = counted.get(label, [])
+            stopped = [r for r in incomplete if r.task == task and r.label == label]
+            rows.append(_table1_row(task, label, runs, stopped))
     return rows
+
+
+def _table1_row(task: str, label: str, runs: Sequence[RunRecord], stopped: Sequence[RunRecord]) -> dict[str, Any]:
+    paper_task, p_state, p_trials, p_exp, p_params = PAPER_TABLE1[task]
+    solved = [r for r in runs if r.solved]
+    dims = sorted({r.state_dim for r in [*runs, *stopped] if r.state_dim is not None})
+    return {
+        "task": task, "learner": label, "paper_task": paper_task, "runs": len(runs), "solved": len(solved),
+        "stopped": len(stopped),
+        "stopped_episodes": _range([r.episodes for r in stopped if r.episodes is not None]),
+        "stopped_interaction_s": _range([r.interaction_seconds for r in stopped]),
+        "state_dim": "/".join(str(d) for d in dims) or "?",
+        "trials": _range([r.trials_to_success for r in solved if r.trials_to_success is not None]),
+        "experience_s": _range([r.time_to_success for r in solved if r.time_to_success is not None]),
+        "policy_parameters": _range([r.policy_parameters for r in [*runs, *stopped] if r.policy_parameters is not None]),
+        "paper": {"state": p_state, "trials": p_trials, "experience": p_exp, "parameters": p_params},
+    }
 
 
 def table1_markdown(rows: Sequence[dict[str, Any]], learner: str) -> str:
@@ -523,8 +585,9 @@ def table1_markdown(rows: Sequence[dict[str, Any]], learner: str) -> str:
     for r in rows:
         p = r["paper"]
         params = r["policy_parameters"]
+        variant = f", `{r['learner']}`" if r["learner"] != learner else ""
         lines.append(
-            f"| {r['task']} ({r['paper_task']}) | {r['solved']}/{r['runs']} | R^{r['state_dim']} / {p['state']} "
+            f"| {r['task']} ({r['paper_task']}){variant} | {r['solved']}/{r['runs']} | R^{r['state_dim']} / {p['state']} "
             f"| {_fmt_range(*r['trials'])} / {p['trials']} | {_fmt_range(*r['experience_s'], fmt=_seconds)} / {p['experience']} "
             f"| {'R^' + _fmt_range(*params) if not math.isnan(params[0]) else '–'} / {p['parameters']} |"
         )
@@ -534,7 +597,8 @@ def table1_markdown(rows: Sequence[dict[str, Any]], learner: str) -> str:
     if notes:
         lines += ["", "Stopped before their limit, not solved so far (lower bounds, not results):", ""]
         for r in notes:
-            lines.append(f"- {r['task']}: {r['stopped']} run(s) at {_fmt_range(*r['stopped_episodes'])} trials, "
+            variant = f" (`{r['learner']}`)" if r["learner"] != learner else ""
+            lines.append(f"- {r['task']}{variant}: {r['stopped']} run(s) at {_fmt_range(*r['stopped_episodes'])} trials, "
                          f"{_fmt_range(*r['stopped_interaction_s'], fmt=_seconds)} s of interaction")
     return "\n".join(lines) + "\n"
 
@@ -542,7 +606,7 @@ def table1_markdown(rows: Sequence[dict[str, Any]], learner: str) -> str:
 def _flat_table1(rows: Sequence[dict[str, Any]]) -> list[dict[str, Any]]:
     out = []
     for r in rows:
-        flat = {"task": r["task"], "paper_task": r["paper_task"], "runs": r["runs"], "solved": r["solved"],
+        flat = {"task": r["task"], "learner": r["learner"], "paper_task": r["paper_task"], "runs": r["runs"], "solved": r["solved"],
                 "stopped": r["stopped"], "state_dim": r["state_dim"]}
         for key in ("trials", "experience_s", "policy_parameters", "stopped_episodes", "stopped_interaction_s"):
             flat[f"{key}_median"], flat[f"{key}_min"], flat[f"{key}_max"] = r[key]
@@ -551,7 +615,7 @@ def _flat_table1(rows: Sequence[dict[str, Any]]) -> list[dict[str, Any]]:
     return out
 
 
-TABLE1_FIELDS = ["task", "paper_task", "runs", "solved", "stopped", "state_dim"] + [
+TABLE1_FIELDS = ["task", "learner", "paper_task", "runs", "solved", "stopped", "state_dim"] + [
     f"{key}_{part}" for key in ("trials", "experience_s", "policy_parameters", "stopped_episodes", "stopped_interaction_s")
     for part in ("median", "min", "max")
 ] + ["paper_state", "paper_trials", "paper_experience", "paper_parameters"]

@@ -16,8 +16,8 @@ from scipy import stats
 from harness import sweep
 from harness.cli import main
 from harness.errors import HarnessError
-from harness.report import (RunRecord, comparison_row, copy_prediction_plot, read_literature, representative_run, run_rows,
-                            runs_markdown, table1_markdown, table1_rows)
+from harness.report import (RunRecord, _label, comparison_row, copy_prediction_plot, file_slug, read_literature,
+                            representative_run, run_rows, runs_markdown, table1_markdown, table1_rows, variant_labels)
 from harness.statistics import bootstrap_ci, iqm, median, stratified_bootstrap, times_with_failures
 from harness.sweep import SweepSpec, run_sweep
 from harness.tracking import open_client
@@ -163,6 +163,34 @@ def test_table1_measured_beside_the_paper():
     md = table1_markdown(rows, "pilco")
     assert "| unicycle (unicycle) | 0/0 | R^4 / R^12 | – / ~ 20 | – / ~ 20-30 s | R^22 [22–22] / R^28 |" in md
     assert "- unicycle: 1 run(s) at 25 [25–25] trials, 30.0 [30.0–30.0] s of interaction" in md
+
+
+def test_sweeps_of_one_learner_are_told_apart_by_the_settings_they_differ_in():
+    import dataclasses
+
+    def rec(seed, sweep, config, learner="pilco"):
+        return dataclasses.replace(_record(seed, True, 12.0, 3.0), run_id=f"{sweep}{seed}", sweep_id=sweep, learner=learner, config=config)
+
+    base = {"task.horizon": "40", "learner.threads": "1", "max_trials": "15"}
+    records = [rec(0, "s40", base), rec(1, "s40", base),
+               rec(0, "s30", base | {"task.horizon": "30", "learner.added_later": "x"}),
+               rec(0, "m", base, learner="pilco-mean")]
+    _label(records)
+    assert [r.label for r in records] == ["pilco [horizon=40]", "pilco [horizon=40]", "pilco [horizon=30]", "pilco-mean"]
+    # the same settings: the sweep id tells them apart; so does a clash of option names, by the full key
+    assert variant_labels("pilco", {"a": base, "b": dict(base)}) == {"a": "pilco@a", "b": "pilco@b"}
+    both = variant_labels("pilco", {"a": base | {"learner.horizon": "5"}, "b": base | {"task.horizon": "30", "learner.horizon": "9"}})
+    assert both == {"a": "pilco [learner.horizon=5, task.horizon=40]", "b": "pilco [learner.horizon=9, task.horizon=30]"}
+    # a setting one run of a sweep differs in is not the sweep's: not compared
+    mixed = [rec(0, "a", base), rec(1, "a", base | {"task.horizon": "30"}), rec(0, "b", base | {"max_trials": "9"})]
+    _label(mixed)
+    assert [r.label for r in mixed] == ["pilco [max_trials=15]", "pilco [max_trials=15]", "pilco [max_trials=9]"]
+    assert file_slug("pilco [horizon=30, max_trials=9]") == "pilco_horizon-30_max_trials-9" and file_slug("pilco@ab12") == "pilco_ab12"
+
+    # Table 1 has a row per variant of the learner, the variant named
+    rows = table1_rows({"cartpole": {"pilco [horizon=40]": records[:2], "pilco [horizon=30]": records[2:3], "pilco-mean": records[3:]}}, "pilco")
+    assert [(r["learner"], r["runs"]) for r in rows] == [("pilco [horizon=40]", 2), ("pilco [horizon=30]", 1)]
+    assert "| cartpole (cart-pole), `pilco [horizon=30]` | 1/1 |" in table1_markdown(rows, "pilco")
 
 
 def test_literature_rows_need_a_source(tmp_path):
