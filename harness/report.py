@@ -264,7 +264,7 @@ LABEL_SETTINGS = 3
 def _label(records: Sequence[RunRecord]) -> None:
     """Row label = learner. Where a learner-task pair is in several sweeps, each sweep's row is the
     learner with the settings its runs differ in, e.g. ``pilco [horizon=30]`` beside
-    ``pilco [horizon=40]``; ``learner@<sweep id>`` where settings do not tell the sweeps apart."""
+    ``pilco [horizon=40]``, with ``@<sweep id>`` added where settings do not tell sweeps apart."""
     by_pair: dict[tuple[str, str], dict[str, list[RunRecord]]] = defaultdict(lambda: defaultdict(list))
     for r in records:
         by_pair[(r.learner, r.task)][r.sweep_id].append(r)
@@ -290,17 +290,18 @@ def variant_labels(learner: str, configs: dict[str, dict[str, str]]) -> dict[str
     """``sweep id -> label`` for several sweeps of one learner on one task, from each sweep's shared
     settings (``configs``): the settings recorded in every sweep whose values differ, by their option
     name (``task.horizon`` -> ``horizon``). Settings missing from a sweep (an option added after it
-    ran) are not compared. Falls back to ``learner@<sweep id>`` when the settings are the same or
-    too many differ (more than :data:`LABEL_SETTINGS`)."""
-    fallback = {sweep: f"{learner}@{sweep}" for sweep in configs}
+    ran) are not compared. Sweeps whose settings do not tell them apart get ``@<sweep id>`` added;
+    with more than :data:`LABEL_SETTINGS` differing settings every label is ``learner@<sweep id>``."""
     recorded = set.intersection(*(set(c) for c in configs.values()))
     differing = sorted(k for k in recorded if len({c[k] for c in configs.values()}) > 1)
-    if not differing or len(differing) > LABEL_SETTINGS:
-        return fallback
+    if len(differing) > LABEL_SETTINGS:
+        return {sweep: f"{learner}@{sweep}" for sweep in configs}
     short = [k.split(".", 1)[-1] for k in differing]
     names = [name if short.count(name) == 1 else key for key, name in zip(differing, short)]
-    labels = {sweep: f"{learner} [{', '.join(f'{n}={c[k]}' for n, k in zip(names, differing))}]" for sweep, c in configs.items()}
-    return labels if len(set(labels.values())) == len(labels) else fallback
+    labels = {sweep: f"{learner} [{', '.join(f'{n}={c[k]}' for n, k in zip(names, differing))}]" if differing else learner
+              for sweep, c in configs.items()}
+    shared = {label for label in labels.values() if list(labels.values()).count(label) > 1}
+    return {sweep: f"{label}@{sweep}" if label in shared else label for sweep, label in labels.items()}
 
 
 def file_slug(label: str) -> str:

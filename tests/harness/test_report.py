@@ -179,6 +179,10 @@ def test_sweeps_of_one_learner_are_told_apart_by_the_settings_they_differ_in():
     assert [r.label for r in records] == ["pilco [horizon=40]", "pilco [horizon=40]", "pilco [horizon=30]", "pilco-mean"]
     # the same settings: the sweep id tells them apart; so does a clash of option names, by the full key
     assert variant_labels("pilco", {"a": base, "b": dict(base)}) == {"a": "pilco@a", "b": "pilco@b"}
+    three = variant_labels("pilco", {"a": base, "b": dict(base), "c": base | {"task.horizon": "30"}})
+    assert three == {"a": "pilco [horizon=40]@a", "b": "pilco [horizon=40]@b", "c": "pilco [horizon=30]"}
+    many = {"a": base | {"task.x": "1"}, "b": dict.fromkeys(base, "0") | {"task.x": "2"}}
+    assert variant_labels("pilco", many) == {"a": "pilco@a", "b": "pilco@b"}  # 4 settings differ
     both = variant_labels("pilco", {"a": base | {"learner.horizon": "5"}, "b": base | {"task.horizon": "30", "learner.horizon": "9"}})
     assert both == {"a": "pilco [learner.horizon=5, task.horizon=40]", "b": "pilco [learner.horizon=9, task.horizon=30]"}
     # a setting one run of a sweep differs in is not the sweep's: not compared
@@ -292,8 +296,11 @@ def test_bench_runs_are_grouped_by_configuration(swept, tmp_path, monkeypatch):
     cli = CliRunner().invoke(main, ["report", "--tracking-uri", uri, "--include-bench", "--out", str(out)])
     assert cli.exit_code == 0, cli.output
     rows = read_rows(out / "comparison_sweep-toy.csv")
-    assert rows[f"sweep-steps@{result.sweep_id}"]["runs"] == "3"  # the sweep's own row, kept apart
-    bench = {label: row for label, row in rows.items() if "@bench-" in label}
+    # the sweep's own row is kept apart from the bench runs made with its settings; rows are named by them
+    assert rows[f"sweep-steps [max_trials=2]@{result.sweep_id}"]["runs"] == "3"
+    bench = {label: row for label, row in rows.items() if label.startswith("sweep-steps") and not label.endswith(result.sweep_id)}
+    assert len(bench) == 2 and "sweep-steps [max_trials=3]" in bench
+    assert any(label.startswith("sweep-steps [max_trials=2]@bench-") for label in bench)
     assert sorted((r["runs"], r["solved"], float(r["median_time_to_success_s"])) for r in bench.values()) == [("1", "1", 4.0), ("2", "2", 6.0)]
     assert "harness bench --learner sweep-steps --task sweep-toy --seed S --max-trials 2 --eval-episodes 2  (S = 2-3" in (out / "sweeps.md").read_text()
 
