@@ -269,12 +269,22 @@ def report_command(tracking_uri: str | None, sweeps: tuple[str, ...], out: str, 
     """Comparison tables, Table 1, Fig. 5 and learning curves from MLflow alone (nothing is re-run)."""
     from pathlib import Path
 
+    import warnings
+
+    from harness.errors import MissingArtifactsWarning
     from harness.report import make_report
     from harness.tracking import open_client, resolve_tracking_uri
 
     uri = resolve_tracking_uri(tracking_uri)
-    written = make_report(open_client(uri), Path(out), list(sweeps) or None, uri, table1_learner, fig5_task,
-                          Path(literature) if literature else None, include_bench)
+    with warnings.catch_warnings(record=True) as caught:
+        warnings.simplefilter("always", MissingArtifactsWarning)
+        written = make_report(open_client(uri), Path(out), list(sweeps) or None, uri, table1_learner, fig5_task,
+                              Path(literature) if literature else None, include_bench)
+    for warning in caught:
+        if issubclass(warning.category, MissingArtifactsWarning):
+            click.echo(f"warning: {warning.message}", err=True)
+        else:
+            warnings.showwarning(warning.message, warning.category, warning.filename, warning.lineno)
     for path in written:
         click.echo(str(path))
     if sweeps:

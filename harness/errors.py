@@ -55,3 +55,8 @@ class CheckpointError(HarnessError):
 
 class NumericalError(HarnessError):
     """A linear-algebra failure that jitter and retries could not cure."""
+
+
+class MissingArtifactsWarning(UserWarning):
+    """A run's artifacts are not in the store (e.g. its artifact folder was not copied with the
+    database): whatever needed them (a plot, a test histogram) was not written."""

@@ -41,6 +41,7 @@ import hashlib
 import json
 import math
 import re
+import warnings
 from collections import defaultdict
 from collections.abc import Sequence
 from dataclasses import dataclass, field
@@ -49,7 +50,7 @@ from typing import Any
 
 import numpy as np
 
-from harness.errors import HarnessError
+from harness.errors import HarnessError, MissingArtifactsWarning
 from harness.statistics import bootstrap_ci, iqm, median, times_with_failures
 from harness.sweep import ERROR_TAG, ROLE_TAG, SWEEP_EXPERIMENT, SWEEP_TAG, _search_all, format_seeds, parse_seeds
 
@@ -422,7 +423,14 @@ def copy_prediction_plot(client, task: str, label: str, runs: Sequence[RunRecord
     import tempfile
 
     run = representative_run(runs)
-    name = last_prediction_plot(client, run.run_id) if run is not None else None
+    if run is None:
+        return None
+    if not client.list_artifacts(run.run_id):
+        warnings.warn(f"prediction plot of {task} / {label} not written: its representative run {run.run_id} has no "
+                      "artifacts in the store (was its artifact folder copied with the database?)", MissingArtifactsWarning,
+                      stacklevel=2)
+        return None
+    name = last_prediction_plot(client, run.run_id)
     if name is None:
         return None
     with tempfile.TemporaryDirectory() as tmp:

@@ -15,7 +15,7 @@ from scipy import stats
 
 from harness import sweep
 from harness.cli import main
-from harness.errors import HarnessError
+from harness.errors import HarnessError, MissingArtifactsWarning
 from harness.report import (RunRecord, _label, comparison_row, copy_prediction_plot, file_slug, read_literature,
                             representative_run, run_rows, runs_markdown, table1_markdown, table1_rows, variant_labels)
 from harness.statistics import bootstrap_ci, iqm, median, stratified_bootstrap, times_with_failures
@@ -138,8 +138,11 @@ def test_prediction_plot_of_the_representative_run_is_copied(tmp_path):
     runs = [_record(0, True, 30.0, 7.0), _record(1, True, 10.0, 3.0)]
     path = copy_prediction_plot(_ArtifactClient(tmp_path), "cartpole", "pilco", runs, out)
     assert path == out / "prediction_cartpole_pilco.png" and path.read_bytes() == b"run1-11"  # lower median; trial 11 > trial 3
-    (tmp_path / "run2").mkdir()
+    (tmp_path / "run2" / "policies").mkdir(parents=True)  # a run that logs no prediction plots
     assert copy_prediction_plot(_ArtifactClient(tmp_path), "cartpole", "pilco", [_record(2, True, 5.0, 2.0)], out) is None
+    (tmp_path / "run3").mkdir()  # a run whose artifacts are missing: said, not silently skipped
+    with pytest.warns(MissingArtifactsWarning, match="cartpole / pilco not written: its representative run run3 has no artifacts"):
+        assert copy_prediction_plot(_ArtifactClient(tmp_path), "cartpole", "pilco", [_record(3, True, 5.0, 2.0)], out) is None
 
 
 def test_table1_measured_beside_the_paper():
