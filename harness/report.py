@@ -27,7 +27,8 @@ configuration (learner, task, limits, resolved options) into pseudo-sweeps ``ben
 
 Which run counts for a cell: the newest FINISHED child of the cell, else the newest child. A cell
 whose counted run FAILED (the learner raised) counts as unsolved and is listed under "errors";
-a cell still RUNNING or KILLED is not counted and is listed as incomplete; a cell of the sweep's
+a cell still RUNNING or KILLED is not counted and is listed as incomplete (a RUNNING run whose
+process, tag ``harness.process``, is gone from this machine is said to be stale); a cell of the sweep's
 spec without any run is listed as missing. Nothing is dropped without being named.
 
 When sweep ids are given, each sweep's rows are also logged on its parent run with
@@ -51,6 +52,7 @@ from typing import Any
 import numpy as np
 
 from harness.errors import HarnessError, MissingArtifactsWarning
+from harness.provenance import PROCESS_TAG, process_alive
 from harness.statistics import bootstrap_ci, iqm, median, times_with_failures
 from harness.sweep import ERROR_TAG, ROLE_TAG, SWEEP_EXPERIMENT, SWEEP_TAG, _search_all, format_seeds, parse_seeds
 
@@ -110,6 +112,8 @@ class RunRecord:
     episodes: float | None = None
     #: what the run was configured with: limits and resolved options (params ``learner.*``, ``task.*``)
     config: dict[str, str] = field(default_factory=dict)
+    #: the process that last logged into the run (tag :data:`harness.provenance.PROCESS_TAG`)
+    process: str = ""
 
     @property
     def cell(self) -> tuple[str, str, int]:
@@ -152,6 +156,7 @@ def record_from_run(run, sweep_id: str) -> RunRecord | None:
         error=tags.get(ERROR_TAG, ""),
         episodes=_metric(metrics, "interaction_episodes"),
         config=run_config(params),
+        process=tags.get(PROCESS_TAG, ""),
     )
 
 
@@ -640,6 +645,15 @@ def write_csv(path: Path, rows: Sequence[dict[str, Any]], fields: Sequence[str] 
     return path
 
 
+def incomplete_status(record: RunRecord) -> str:
+    """A not-counted run's status; a RUNNING run whose process is gone is said to be stale."""
+    if record.status == "RUNNING" and process_alive(record.process) is False:
+        host, pid, _ = record.process.rsplit(":", 2)
+        return (f"RUNNING in the store, but its process (pid {pid} on {host}) is gone: it stopped without being "
+                "marked; re-run its command to resume it")
+    return record.status
+
+
 def notes_markdown(data: ReportData) -> str:
     """``sweeps.md``: the sweeps used, and every run or cell not counted."""
     lines = ["# Sweeps behind these results", "", f"Tracking store: `{data.tracking_uri}`", ""]
@@ -654,7 +668,7 @@ def notes_markdown(data: ReportData) -> str:
         lines.append("")
     if data.incomplete:
         lines += ["## Runs not counted (still running or killed)", ""]
-        lines += [f"- {r.learner} on {r.task}, seed {r.seed} (run `{r.run_id}`): {r.status}" for r in data.incomplete]
+        lines += [f"- {r.learner} on {r.task}, seed {r.seed} (run `{r.run_id}`): {incomplete_status(r)}" for r in data.incomplete]
         lines.append("")
     if data.missing:
         lines += ["## Cells of the sweeps without any run (not counted)", ""]

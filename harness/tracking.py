@@ -19,6 +19,7 @@ from pathlib import Path
 from typing import Any, Literal, Protocol
 
 from harness.errors import TrackingError
+from harness.provenance import PROCESS_TAG, process_token
 
 RunStatus = Literal["FINISHED", "FAILED", "KILLED"]
 
@@ -156,6 +157,7 @@ class MlflowTracker:
             if self.parent_run_id:
                 all_tags["mlflow.parentRunId"] = self.parent_run_id
             all_tags["mlflow.runName"] = run_name
+            all_tags[PROCESS_TAG] = process_token()
             run = self.client.create_run(experiment_id, run_name=run_name, tags=all_tags)
             self.run_id = run.info.run_id
             self._log_params(params)
@@ -205,6 +207,7 @@ class MlflowTracker:
             raise TrackingError(f"no run {run_id!r} in {self.tracking_uri}; check the id (mlflow ui lists runs)") from exc
         self.run_id = run_id
         self.client.update_run(run_id, status="RUNNING")
+        self.set_tags({PROCESS_TAG: process_token()})
 
     def list_artifacts(self, artifact_path: str) -> list[str]:
         """Names of the run's artifacts under ``artifact_path``."""

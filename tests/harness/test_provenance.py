@@ -24,3 +24,32 @@ def test_dirty_flag_ignores_the_results_store(tmp_path):
     assert git_sha(tmp_path) == sha
     (tmp_path / "code.py").write_text("x = 2\n")
     assert git_sha(tmp_path) == sha + "+dirty"
+
+
+def test_process_token_tells_a_live_process_from_a_dead_one_and_from_a_reused_pid():
+    import os
+    import socket
+
+    from harness.provenance import process_alive, process_token
+
+    mine = process_token()
+    assert mine.startswith(f"{socket.gethostname()}:{os.getpid()}:") and process_alive(mine) is True
+    child = subprocess.Popen(["sleep", "0.01"])
+    token = process_token(child.pid)
+    child.wait()
+    assert process_alive(token) is False  # exited (and reaped)
+    host, pid, start = mine.rsplit(":", 2)
+    assert process_alive(f"{host}:{pid}:{int(start) + 1}") is False  # same pid, another start: a reused pid
+    assert process_alive(f"another-host-{host}:{pid}:{start}") is None and process_alive("garbage") is None
+
+
+def test_tracked_runs_name_their_process_on_start_and_resume(tmp_path):
+    from harness.provenance import PROCESS_TAG, process_token
+    from harness.tracking import MlflowTracker
+
+    tracker = MlflowTracker(f"sqlite:///{tmp_path / 'mlflow.db'}")
+    run_id = tracker.start("exp", "run", {"a": 1}, {})
+    assert tracker.client.get_run(run_id).data.tags[PROCESS_TAG] == process_token()
+    tracker.client.set_tag(run_id, PROCESS_TAG, "elsewhere:1:1")
+    MlflowTracker(tracker.tracking_uri).resume(run_id)
+    assert tracker.client.get_run(run_id).data.tags[PROCESS_TAG] == process_token()

@@ -200,6 +200,25 @@ def test_sweeps_of_one_learner_are_told_apart_by_the_settings_they_differ_in():
     assert "| cartpole (cart-pole), `pilco [horizon=30]` | 1/1 |" in table1_markdown(rows, "pilco")
 
 
+def test_a_running_run_whose_process_is_gone_is_named_stale():
+    import dataclasses
+    import subprocess
+
+    from harness.provenance import process_token
+    from harness.report import ReportData, notes_markdown
+
+    child = subprocess.Popen(["sleep", "0.01"])
+    dead = process_token(child.pid)
+    child.wait()
+    runs = [dataclasses.replace(_record(0, False, status="RUNNING"), process=dead),
+            dataclasses.replace(_record(1, False, status="RUNNING"), run_id="live", process=process_token()),
+            dataclasses.replace(_record(2, False, status="KILLED"), run_id="killed", process=dead)]
+    md = notes_markdown(ReportData([], [], incomplete=runs))
+    host, pid, _ = dead.rsplit(":", 2)
+    assert f"(run `run0`): RUNNING in the store, but its process (pid {pid} on {host}) is gone" in md
+    assert "(run `live`): RUNNING\n" in md and "(run `killed`): KILLED\n" in md
+
+
 def test_literature_rows_need_a_source(tmp_path):
     path = tmp_path / "lit.csv"
     path.write_text("# comment\nmethod,year,interaction_seconds,source,note\nX,2001,100,,\n")
