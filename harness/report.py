@@ -19,7 +19,7 @@ Reads the sweeps' child runs (see :mod:`harness.sweep` for the layout) and write
 
 Rows are named by learner. Where a learner ran on a task in several sweeps, each sweep's row is
 named by the settings its runs differ in (``pilco [horizon=30]`` beside ``pilco [horizon=40]``),
-or ``learner@<sweep id>`` when settings do not tell the sweeps apart; files named after a row use
+with ``@<sweep id>`` added where settings do not tell sweeps apart; files named after a row use
 the same name as a slug (``prediction_cartpole_pilco_horizon-30.png``).
 
 With ``include_bench``, `harness bench` runs outside sweeps are reported too, grouped by
