@@ -412,10 +412,21 @@ def representative_run(runs: Sequence[RunRecord]) -> RunRecord | None:
     return max(runs, key=lambda r: (r.interaction_seconds, -r.seed), default=None)
 
 
-def last_prediction_plot(client, run_id: str) -> str | None:
-    """Artifact path of the run's last ``prediction_trial*.png`` (PILCO logs one per trial)."""
+def _run_artifacts(client, run_id: str, what: str, task: str, label: str, role: str) -> list:
+    """The run's top-level artifacts; if it has none (its artifact folder was not copied with the
+    database), a :class:`MissingArtifactsWarning` says that ``what`` was not written."""
+    entries = client.list_artifacts(run_id)
+    if not entries:
+        warnings.warn(f"{what} of {task} / {label} not written: its {role} run {run_id} has no artifacts in the store "
+                      "(was its artifact folder copied with the database?)", MissingArtifactsWarning, stacklevel=3)
+    return entries
+
+
+def last_prediction_plot(client, run_id: str, entries: Sequence | None = None) -> str | None:
+    """Artifact path of the run's last ``prediction_trial*.png`` (PILCO logs one per trial);
+    ``entries``: the run's top-level artifacts, if already listed."""
     found: list[str] = []
-    for entry in client.list_artifacts(run_id):
+    for entry in client.list_artifacts(run_id) if entries is None else entries:
         if entry.is_dir and entry.path.startswith("trial"):
             found += [a.path for a in client.list_artifacts(run_id, entry.path)
                       if Path(a.path).name.startswith("prediction_trial") and a.path.endswith(".png")]
@@ -430,12 +441,10 @@ def copy_prediction_plot(client, task: str, label: str, runs: Sequence[RunRecord
     run = representative_run(runs)
     if run is None:
         return None
-    if not client.list_artifacts(run.run_id):
-        warnings.warn(f"prediction plot of {task} / {label} not written: its representative run {run.run_id} has no "
-                      "artifacts in the store (was its artifact folder copied with the database?)", MissingArtifactsWarning,
-                      stacklevel=2)
+    entries = _run_artifacts(client, run.run_id, "prediction plot", task, label, "representative")
+    if not entries:
         return None
-    name = last_prediction_plot(client, run.run_id)
+    name = last_prediction_plot(client, run.run_id, entries)
     if name is None:
         return None
     with tempfile.TemporaryDirectory() as tmp:
@@ -482,6 +491,8 @@ def copy_test_histogram(client, task: str, label: str, runs: Sequence[RunRecord]
         return None
     rep = representative_run(runs)
     run_id = rep.run_id if rep is not None and rep.run_id in ids else ids[0]
+    if not _run_artifacts(client, run_id, "test histogram", task, label, "tested"):
+        return None
     names = [a.path for a in client.list_artifacts(run_id, "test") if a.path.endswith("test_final_distance.png")]
     if not names:
         return None

@@ -145,6 +145,22 @@ def test_prediction_plot_of_the_representative_run_is_copied(tmp_path):
         assert copy_prediction_plot(_ArtifactClient(tmp_path), "cartpole", "pilco", [_record(3, True, 5.0, 2.0)], out) is None
 
 
+def test_test_histogram_of_the_tested_run_is_copied_and_missing_artifacts_are_said(tmp_path):
+    from harness.report import copy_test_histogram
+
+    (tmp_path / "run1" / "test").mkdir(parents=True)
+    (tmp_path / "run1" / "test" / "test_final_distance.png").write_bytes(b"hist1")
+    out = tmp_path / "out"
+    out.mkdir()
+    runs = [_record(0, True, 30.0, 7.0), _record(1, True, 10.0, 3.0)]
+    tested = [{"run_id": "run1"}]
+    path = copy_test_histogram(_ArtifactClient(tmp_path), "unicycle", "pilco [init=code]", runs, tested, out)
+    assert path == out / "fig4b_unicycle_pilco_init-code.png" and path.read_bytes() == b"hist1"
+    (tmp_path / "run0").mkdir()  # tested, but its artifacts are missing
+    with pytest.warns(MissingArtifactsWarning, match="test histogram of unicycle / pilco not written: its tested run run0 has no artifacts"):
+        assert copy_test_histogram(_ArtifactClient(tmp_path), "unicycle", "pilco", runs, [{"run_id": "run0"}], out) is None
+
+
 def test_table1_measured_beside_the_paper():
     runs = [_record(0, True, 15.0, 4.0), _record(1, True, 25.0, 6.0), _record(2, False)]
     rows = table1_rows({"cartpole": {"pilco": runs}}, "pilco")
