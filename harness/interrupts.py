@@ -21,10 +21,15 @@ def _raise_interrupt(signum: int, frame) -> None:
     raise KeyboardInterrupt(f"terminated by signal {signum}")
 
 
+def _on_main_thread() -> bool:
+    """Signal handlers can only be read and set from the main thread."""
+    return threading.current_thread() is threading.main_thread()
+
+
 def terminate_as_interrupt() -> bool:
     """Make SIGTERM raise ``KeyboardInterrupt`` in this process; returns whether it was installed
     (signal handlers can only be set from the main thread)."""
-    if threading.current_thread() is not threading.main_thread():
+    if not _on_main_thread():
         return False
     signal.signal(signal.SIGTERM, _raise_interrupt)
     return True
@@ -39,7 +44,7 @@ def held_interrupts() -> Iterator[None]:
     store (an interrupt inside SQLAlchemy leaves a logged traceback and a rolled-back session), a
     checkpoint. Off the main thread (where handlers cannot be set) the block runs unprotected.
     """
-    if threading.current_thread() is not threading.main_thread():
+    if not _on_main_thread():
         yield
         return
     received: list[int] = []
@@ -53,3 +58,14 @@ def held_interrupts() -> Iterator[None]:
             signal.signal(signum, handler)
         if received:
             signal.raise_signal(received[0])
+
+
+@contextmanager
+def sigterm_handler_kept() -> Iterator[None]:
+    """Put the application's SIGTERM handler (e.g. :func:`terminate_as_interrupt`'s) back after a
+    block that replaces it, such as ``ray.init`` (whose handler exits at once). Off the main
+    thread, or when the handler was not set from Python, nothing is put back."""
+    previous = signal.getsignal(signal.SIGTERM) if _on_main_thread() else None
+    yield
+    if callable(previous):
+        signal.signal(signal.SIGTERM, previous)

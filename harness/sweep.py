@@ -478,10 +478,10 @@ class RayPool:
 
     def __init__(self, workers: int | None, address: str | None) -> None:
         import logging
-        import signal
-        import threading
 
         import ray
+
+        from harness.interrupts import sigterm_handler_kept
 
         self._ray = ray
         self._owns = not ray.is_initialized()
@@ -489,16 +489,13 @@ class RayPool:
         if self._owns:
             # ray.init replaces the SIGTERM handler with its own (exit at once); an application handler
             # (the CLI's: SIGTERM takes the Ctrl-C path, runs marked KILLED) is put back afterwards
-            main_thread = threading.current_thread() is threading.main_thread()
-            previous = signal.getsignal(signal.SIGTERM) if main_thread else None
-            if address is None:
-                os.environ.setdefault("RAY_AUTH_MODE", "disabled")  # embedded: no token files under ~/.ray
-                ray.init(num_cpus=workers, include_dashboard=False, log_to_driver=False, logging_level=logging.WARNING,
-                         _temp_dir=os.path.join(tempfile.gettempdir(), f"ray-harness-{os.getuid()}"))
-            else:
-                ray.init(address=address, log_to_driver=False, logging_level=logging.WARNING)
-            if callable(previous):
-                signal.signal(signal.SIGTERM, previous)
+            with sigterm_handler_kept():
+                if address is None:
+                    os.environ.setdefault("RAY_AUTH_MODE", "disabled")  # embedded: no token files under ~/.ray
+                    ray.init(num_cpus=workers, include_dashboard=False, log_to_driver=False, logging_level=logging.WARNING,
+                             _temp_dir=os.path.join(tempfile.gettempdir(), f"ray-harness-{os.getuid()}"))
+                else:
+                    ray.init(address=address, log_to_driver=False, logging_level=logging.WARNING)
         self.workers = workers or max(1, int(ray.cluster_resources().get("CPU", 1)))
         self._remote = ray.remote(num_cpus=1, max_calls=1)(run_cell)
 

@@ -52,3 +52,15 @@ def test_sigterm_during_a_trial_write_stops_the_run_after_the_write():
     trial_2 = {key for key, points in tracker.metrics.items() if any(step == 2 for step, _ in points)}
     assert {"eval_cost", "eval_success_rate", "interaction_seconds", "wall_seconds"} <= trial_2  # both halves
     assert [s for s, _ in tracker.metrics["eval_cost"]] == [1, 2]  # and nothing after it
+
+
+def test_sigterm_handler_kept_puts_the_application_handler_back():
+    from harness.interrupts import sigterm_handler_kept
+
+    def application(signum, frame):
+        pass
+
+    signal.signal(signal.SIGTERM, application)
+    with sigterm_handler_kept():
+        signal.signal(signal.SIGTERM, signal.SIG_DFL)  # what ray.init does to it
+    assert signal.getsignal(signal.SIGTERM) is application
