@@ -45,16 +45,22 @@ from plugins.pilco.sampling import sampled_costs  # noqa: E402
 from tasks.unicycle_lqr import riding_lqr  # noqa: E402
 
 
+def held_costs(episodes, horizon: int) -> np.ndarray:
+    """Per-episode, per-step real costs ``(episodes, horizon)``: a terminated episode (a fall) holds
+    its last cost to the end; steps an unterminated episode did not reach are NaN."""
+    out = np.full((len(episodes), horizon), np.nan)
+    for row, ep in zip(out, episodes):
+        if ep.terminated:
+            row[:] = ep.costs[-1]
+        row[: ep.steps] = ep.costs[:horizon]
+    return out
+
+
 def real_costs(evaluator: Evaluator, policy, horizon: int) -> tuple[np.ndarray, float]:
     """Per-step mean cost ``(horizon,)`` over the evaluator's episodes (a terminated episode holds
     its last cost) and the success rate."""
     result = evaluator(policy)
-    per_step = np.zeros(horizon)
-    for ep in result.episodes:
-        c = np.full(horizon, ep.costs[-1] if ep.terminated else np.nan)
-        c[: ep.steps] = ep.costs[:horizon]
-        per_step += c / len(result.episodes)
-    return per_step, result.success_rate
+    return held_costs(result.episodes, horizon).mean(axis=0), result.success_rate
 
 
 def main(argv: list[str] | None = None) -> None:

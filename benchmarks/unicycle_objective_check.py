@@ -57,6 +57,7 @@ sys.path.insert(0, str(ROOT))
 
 from harness.discovery import load_learner, load_task  # noqa: E402
 from harness.errors import NumericalError  # noqa: E402
+from benchmarks.pilco_prediction_check import held_costs  # noqa: E402
 from harness.evaluation import Evaluator  # noqa: E402
 from harness.testrun import task_options  # noqa: E402
 from harness.tracking import open_client, resolve_tracking_uri  # noqa: E402
@@ -90,14 +91,7 @@ def predicted_J(objective: PolicyObjective, particles: int) -> tuple[float, floa
 
 def real_summary(result, horizons: list[int]) -> dict:
     """Success, falls and summed real cost over each horizon (a fall holds its last cost)."""
-    longest = max(horizons)
-    per_ep = []
-    for ep in result.episodes:
-        c = np.full(longest, ep.costs[-1] if ep.terminated else np.nan)
-        n = min(ep.steps, longest)
-        c[:n] = ep.costs[:n]
-        per_ep.append(c)
-    per_ep = np.array(per_ep)
+    per_ep = held_costs(result.episodes, max(horizons))
     return {
         "success": result.success_rate,
         "falls": float(np.mean([ep.terminated for ep in result.episodes])),
