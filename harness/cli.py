@@ -68,7 +68,12 @@ def main(debug: bool) -> None:
     ``harness.tasks``. Results go to MLflow (default: ./mlflow.db, no server needed).
     """
     _Context.debug = debug
+    import os
+
     from harness.interrupts import terminate_as_interrupt
+
+    # MLflow draws a download bar per artifact (a resumed run's checkpoint, each copied plot)
+    os.environ.setdefault("MLFLOW_ENABLE_ARTIFACTS_PROGRESS_BAR", "false")
 
     terminate_as_interrupt()  # `kill PID` / a scheduler's SIGTERM: the Ctrl-C path (run KILLED, resume hint)
 
@@ -269,14 +274,12 @@ def report_command(tracking_uri: str | None, sweeps: tuple[str, ...], out: str, 
     """Comparison tables, Table 1, Fig. 5 and learning curves from MLflow alone (nothing is re-run)."""
     from pathlib import Path
 
-    import os
     import warnings
 
     from harness.errors import MissingArtifactsWarning
     from harness.report import make_report
     from harness.tracking import open_client, resolve_tracking_uri
 
-    os.environ.setdefault("MLFLOW_ENABLE_ARTIFACTS_PROGRESS_BAR", "false")  # one bar per copied plot otherwise
     uri = resolve_tracking_uri(tracking_uri)
     with warnings.catch_warnings(record=True) as caught:
         warnings.simplefilter("always", MissingArtifactsWarning)

@@ -90,6 +90,7 @@ def test_sigkill_mid_trial_then_resume_matches_uninterrupted(tmp_path, mlflow_ur
     code, output = run_harness([*args, "--resume"], tmp_path, timeout=600)
     assert code == 0, output
     assert run_id in output  # the same run continued
+    assert "Downloading artifacts" not in output  # no MLflow bar for fetching the checkpoint
 
     code, output = run_harness([*args, "--quiet"], tmp_path, timeout=600)
     assert code == 0, output
