@@ -4,7 +4,7 @@ Usage::
 
     OMP_NUM_THREADS=1 .venv/bin/python benchmarks/unicycle_objective_check.py \\
         [--run-id a3e1c149352342babeb677f26a9ff0ac] [--trials 17 11] [--speeds 0.3 0.5 1] \\
-        [--horizons 40 67] [--episodes 100] [--search-trials 17] [--search-speeds 0.3] \\
+        [--horizons 40 67] [--episodes 100] [--search-trials 17] [--search-speeds 0.3] [--refit-full] \\
         [--tracking-uri sqlite:///<repo>/results/runs/mlflow.db]
 
 Question: PILCO's learned linear policy reaches ~17 % success on the unicycle, the riding LQRs of
@@ -22,12 +22,15 @@ width, the saved state layout, ``mean_only`` off as in ``pilco``) over each of `
 steps, plus the same model by Monte Carlo (:func:`plugins.pilco.sampling.sampled_costs`). On the
 real task (the harness's :class:`~harness.evaluation.Evaluator`, ``--episodes`` episodes, seeds
 100000 + i, measurement noise on, a fall held to the end) it reports each policy's summed cost over
-the same horizons and its success rate. GP diagnostics on those real episodes, within the
+the same horizons and its success rate, and the success rate of the same episodes without
+measurement noise (PILCO's planning feeds the policy the noise-free state). GP diagnostics on those real episodes, within the
 trial's planning horizon: the GP's latent predictive variance relative to its signal variance
 (0 = at the data, 1 = prior), the median one-step error of the GP mean on the true (noise-free)
 states relative to the GP's noise std (both averaged over the 10 outputs), and the fraction of the
 episodes' start states from which a deterministic rollout of the GP mean under the policy falls,
-next to the fraction of real episodes that fell.
+next to the fraction of real episodes that fell. With ``--refit-full`` every policy is also
+scored under a full GP refitted to the trial's data (the run's model is FITC above 300 points):
+is the sparse approximation the source of the model's bias?
 
 Then (``--search-trials`` x ``--search-speeds``) it runs the learner's own policy search
 (:func:`plugins.pilco.policy_search.optimise_policy`, the saved preset's L-BFGS budget, at the
@@ -43,6 +46,7 @@ from __future__ import annotations
 import argparse
 import copy
 import dataclasses
+import itertools
 import math
 import sys
 import tempfile
@@ -99,7 +103,7 @@ def real_summary(result, horizons: list[int]) -> dict:
     }
 
 
-def gp_diagnostics(model: GPModel, saved: dict, episodes, layout, steps: int) -> tuple[float, float]:
+def gp_diagnostics(model: GPModel, episodes, layout, steps: int) -> tuple[float, float]:
     """GP accuracy along real episodes, first ``steps`` steps (a fall's last transition dropped):
     mean over the 10 outputs of (latent predictive variance / signal variance) and of the median
     over transitions of the one-step |error| of the GP mean on the *true* (noise-free) states and
@@ -115,8 +119,9 @@ def gp_diagnostics(model: GPModel, saved: dict, episodes, layout, steps: int) ->
         cut.append(ep)
     x, y = transitions(cut, layout)
     mean, var = model.predict(x)
-    signal_var = torch.exp(2.0 * saved["gp"]["log_alpha"]).numpy()
-    noise_std = torch.exp(saved["gp"]["log_sigma"]).numpy()
+    hyp = model.hyperparameters
+    signal_var = torch.exp(2.0 * hyp.log_alpha).numpy()
+    noise_std = torch.exp(hyp.log_sigma).numpy()
     var_ratio = float(np.mean(var.numpy() / signal_var[None, :]))
     err = float(np.mean(np.median(np.abs(y - mean.numpy()), axis=0) / noise_std))
     return var_ratio, err
@@ -160,6 +165,9 @@ def main(argv: list[str] | None = None) -> None:
     parser.add_argument("--particles", type=int, default=500, help="Monte-Carlo particles through the GP (0 = off)")
     parser.add_argument("--search-trials", type=int, nargs="*", default=[17])
     parser.add_argument("--search-speeds", type=float, nargs="*", default=[0.3])
+    parser.add_argument("--refit-full", action="store_true",
+                        help="also score every policy under a full GP refitted to the trial's data (warm-started at the "
+                             "saved hyperparameters): is the sparse (FITC) approximation the model's bias?")
     parser.add_argument("--tracking-uri", default=DEFAULT_URI)
     parser.add_argument("--out", type=Path, default=ROOT / "results" / "benchmarks" / "unicycle_objective_check.md")
     args = parser.parse_args(argv)
@@ -193,38 +201,55 @@ def main(argv: list[str] | None = None) -> None:
                 sys.exit(f"trial {trial}: the policy's layout {policy.layout} differs from the model's {saved['layout']}")
             loaded[trial] = (saved, model, policy)
 
+    models: dict[int, list[tuple[str, GPModel]]] = {}
+    for trial in args.trials:
+        saved, model, _ = loaded[trial]
+        models[trial] = [("FITC (run)" if model.sparse else "full (run)", model)]
+        if args.refit_full:
+            t = time.perf_counter()
+            full = GPModel(sparse_threshold=10**9, max_evals_full=int(params.get("learner.gp_max_evals", 300)))
+            fit = full.fit(saved["gp"]["inputs"], saved["gp"]["targets"], warm_start=model.hyperparameters)
+            models[trial].append(("full refit", full))
+            print(f"trial {trial}: full GP refit on {fit.n_points} points, NLL {fit.nll:.1f} ({time.perf_counter() - t:.0f} s)",
+                  flush=True)
+
     lqrs = {v: linear_policy_from_gain(spec, *riding_lqr(task, v)) for v in args.speeds + args.search_speeds}
     for v, p in lqrs.items():
         if p.layout != loaded[args.trials[0]][0]["layout"]:
             sys.exit(f"LQR {v} m/s: layout {p.layout} differs from the learner's")
 
     evaluator = Evaluator(task, n_episodes=args.episodes, seed=100_000)
+    # the same episodes without measurement noise: how much of a failure is the policy's noise sensitivity
+    # (the GP-mean rollouts and PILCO's planning see no measurement noise in the policy's input)
+    noise_free = Evaluator(load_task("unicycle")(**{**task_options(params), "measurement_noise": 0.0}),
+                           n_episodes=args.episodes, seed=100_000)
     real_cache: dict[str, tuple[dict, list]] = {}
 
     def real(name: str, policy: PilcoPolicy) -> tuple[dict, list]:
         if name not in real_cache:
             t = time.perf_counter()
             result = evaluator(policy)
-            real_cache[name] = (real_summary(result, horizons), result.episodes)
+            real_cache[name] = ({**real_summary(result, horizons), "success_noise_free": noise_free(policy).success_rate},
+                                result.episodes)
             print(f"  real {name}: success {100 * result.success_rate:.0f} %  ({time.perf_counter() - t:.0f} s)", flush=True)
         return real_cache[name]
 
     # ---- J of the learned policy and the LQRs under each trial's model --------------------------
     rows = []
     for trial in args.trials:
-        saved, model, learned = loaded[trial]
+        saved, _, learned = loaded[trial]
         H = plan_h[trial]
         print(f"trial {trial}: GP on {saved['gp']['inputs'].shape[0]} points, planning horizon {H}", flush=True)
         candidates = [(f"learned (trial {trial})", f"learned{trial}", learned)]
         candidates += [(f"riding LQR {v:g} m/s", f"lqr{v:g}", lqrs[v]) for v in args.speeds]
-        for label, key, policy in candidates:
+        for (label, key, policy), (model_name, model) in itertools.product(candidates, models[trial]):
             t = time.perf_counter()
             J = {h: predicted_J(objective_for(policy, model, spec, h, width, mean_only), args.particles) for h in horizons}
             summary, episodes = real(key, policy)
-            var_ratio, nrmse = gp_diagnostics(model, saved, episodes, policy.layout, H)
+            var_ratio, nrmse = gp_diagnostics(model, episodes, policy.layout, H)
             falls_gp, falls_real = gp_mean_falls(model, policy, episodes, task, H), real_falls_within(episodes, H)
-            rows.append((trial, label, J, summary, var_ratio, nrmse, falls_gp, falls_real))
-            print(f"  {label:22s} J " + "  ".join(f"H{h} {J[h][0]:.2f} (MC {J[h][1]:.2f})" for h in horizons)
+            rows.append((trial, label, model_name, J, summary, var_ratio, nrmse, falls_gp, falls_real))
+            print(f"  {label:22s} {model_name:11s} J " + "  ".join(f"H{h} {J[h][0]:.2f} (MC {J[h][1]:.2f})" for h in horizons)
                   + f"  real " + "  ".join(f"H{h} {summary['cost'][h]:.2f}" for h in horizons)
                   + f"  var/prior {var_ratio:.3f}  err/noise {nrmse:.3f}  falls({H}) GP-mean {falls_gp:.2f} real {falls_real:.2f}  ({time.perf_counter() - t:.0f} s)", flush=True)
 
@@ -272,30 +297,33 @@ def main(argv: list[str] | None = None) -> None:
         f"cost_width={params.get('learner.cost_width')}). Planning horizon used at each trial (run metric): "
         + ", ".join(f"trial {t}: {plan_h[t]}" for t in sorted(set(args.trials) | set(args.search_trials))) + ".", "",
         "**J(H) MM** = the learner's objective (moment matching, sum of expected cost over H steps from the task's "
-        "N(mu0, Sigma0), cost width 1, saved layout) under the GP trained at that trial; **J(H) MC** = the same GP and "
+        "N(mu0, Sigma0), cost width 1, saved layout) under the GP trained at that trial (**GP**: the run's own model, "
+        "FITC or full; *full refit*: a full GP refitted to the same data, warm-started at the run's hyperparameters); **J(H) MC** = the same GP and "
         f"policy by Monte Carlo ({args.particles} particles, seed 0); *fail* = the closed form broke down (Cholesky). "
         f"**real cost(H)** = mean over {args.episodes} real episodes (seeds 100000 + i, measurement noise on) of the "
-        "cost summed over the first H steps, a fall holding its last cost; success = the task's rule. "
+        "cost summed over the first H steps, a fall holding its last cost; success = the task's rule; *no measurement "
+        "noise*: the same episodes with the task's measurement noise off (the policy acts on the true state, as in "
+        "PILCO's planning). "
         "**GP var/prior** = GP latent predictive variance / signal variance and **1-step err/noise** = median one-step |error| "
         "of the GP mean on true (noise-free) states and state changes / the GP's noise std, both on the real "
         "episodes' transitions within the trial's planning horizon, averaged over the 10 outputs. **falls(Hp) "
         "GP-mean / real** = fraction of the real episodes' start states from which the deterministic GP-mean rollout "
         "under the policy reaches the fall region (|theta| or |psi_f| > pi/2) within the planning horizon Hp / "
         "fraction of the real episodes that fell within Hp.", "",
-        f"| trial | policy | {hcols} | {rcols} | success | falls | GP var/prior | 1-step err/noise | falls(Hp) GP-mean / real |",
-        "|---|---|" + "---|" * (3 * len(horizons) + 5),
+        f"| trial | policy | GP | {hcols} | {rcols} | success | success, no measurement noise | falls | GP var/prior | 1-step err/noise | falls(Hp) GP-mean / real |",
+        "|---|---|---|" + "---|" * (3 * len(horizons) + 6),
     ]
-    for trial, label, J, s, var_ratio, nrmse, falls_gp, falls_real in rows:
-        lines.append(f"| {trial} | {label} | " + " | ".join(f"{fmt(J[h][0])} | {fmt(J[h][1])}" for h in horizons) + " | "
+    for trial, label, model_name, J, s, var_ratio, nrmse, falls_gp, falls_real in rows:
+        lines.append(f"| {trial} | {label} | {model_name} | " + " | ".join(f"{fmt(J[h][0])} | {fmt(J[h][1]) if args.particles else '-'}" for h in horizons) + " | "
                      + " | ".join(f"{s['cost'][h]:.2f}" for h in horizons)
-                     + f" | {100 * s['success']:.0f} % | {100 * s['falls']:.0f} % | {var_ratio:.4f} | {nrmse:.2f} | "
+                     + f" | {100 * s['success']:.0f} % | {100 * s['success_noise_free']:.0f} % | {100 * s['falls']:.0f} % | {var_ratio:.4f} | {nrmse:.2f} | "
                      f"{100 * falls_gp:.0f} % / {100 * falls_real:.0f} % |")
     for trial in args.trials:
         if trial in J_after:
             lines.append("")
             lines.append(f"Check: the run logged J_after = {J_after[trial]:.4f} for trial {trial} (planning horizon "
                          f"{plan_h[trial]}); recomputed here: "
-                         f"{next(r[2][plan_h[trial]][0] for r in rows if r[0] == trial and r[1].startswith('learned')):.4f}."
+                         f"{next(r[3][plan_h[trial]][0] for r in rows if r[0] == trial and r[1].startswith('learned')):.4f}."
                          if plan_h[trial] in horizons else f"Run's J_after for trial {trial}: {J_after[trial]:.4f}.")
     if searches:
         jcols = " | ".join(f"J({h}) MM after" for h in horizons)
