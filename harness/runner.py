@@ -166,6 +166,13 @@ def run_identity(prep: Prepared) -> dict[str, Any]:
     return identity
 
 
+def option_defaults(prep: Prepared) -> dict[str, Any]:
+    """The task's and the learner's option defaults under their :func:`run_identity` keys."""
+    task_defaults = type(prep.task).option_set().defaults()
+    learner_defaults = prep.learner_cls.option_set().defaults()
+    return {**{f"task.{k}": v for k, v in task_defaults.items()}, **{f"learner.{k}": v for k, v in learner_defaults.items()}}
+
+
 def _latest_valid_checkpoint(tracker: Tracker, destination: Path) -> Checkpoint:
     """The checkpoint of the highest trial that loads (a file cut by a crash is skipped); only
     the files needed are downloaded, newest first."""
@@ -213,7 +220,7 @@ def run(
             raise CheckpointError(f"learner '{config.learner}' cannot resume runs; start a new run without --resume")
         tracker.resume(resume_run_id)
         checkpoint = _latest_valid_checkpoint(tracker, workdir / "resume")
-        mismatch = identity_mismatch(checkpoint.identity, identity)
+        mismatch = identity_mismatch(checkpoint.identity, identity, option_defaults(prep))
         if mismatch:
             tracker.finish("FAILED")
             raise CheckpointError(f"run {resume_run_id} was made with other settings ({mismatch}); resume it with the same command")

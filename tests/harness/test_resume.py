@@ -50,6 +50,23 @@ def test_resume_refuses_other_settings():
         run(other, tracker=tracker, resume_run_id=tracker.run_id)
 
 
+def test_an_option_added_since_the_run_started_resumes_at_its_default(monkeypatch):
+    """A checkpoint written before a learner gained an option resumes when the option is at its
+    default (the run did what the default does), and is refused when it is set otherwise."""
+    from harness.options import Option
+    from plugins.random_learner import RandomLearner
+
+    config = RunConfig("random", "cartpole", seed=1, max_trials=3, eval_episodes=1)
+    tracker = InterruptAt(3)
+    with pytest.raises(KeyboardInterrupt):
+        run(config, tracker=tracker)
+    monkeypatch.setattr(RandomLearner, "options", RandomLearner.options + (Option("newer", int, 7, "added later"),))
+    other = RunConfig("random", "cartpole", seed=1, max_trials=3, eval_episodes=1, learner_options={"newer": "8"})
+    with pytest.raises(CheckpointError, match="learner.newer: checkpoint None vs now 8"):
+        run(other, tracker=tracker, resume_run_id=tracker.run_id)
+    assert len(run(config, tracker=tracker, resume_run_id=tracker.run_id).history) == 3
+
+
 def test_corrupt_checkpoint_is_detected(tmp_path):
     path = save_checkpoint(Checkpoint({"a": 1}, 1, [], {}, {}), tmp_path / "ckpt_trial001.pkl")
     assert load_checkpoint(path).trial == 1
