@@ -33,7 +33,7 @@ from typing import Any, ClassVar
 import numpy as np
 import torch
 
-from harness.errors import NumericalError
+from harness.errors import NumericalError, OptionError
 from harness.interaction import Interaction
 from harness.learner import Learner, Policy
 from harness.options import Option
@@ -194,6 +194,9 @@ class Pilco(Learner):
         Option("cost_width", float, None, "cost width used in planning (default: the task preset's, else the task's)", low=1e-6),
         Option("grow_horizon_below", float, None, "double the planning horizon (up to the task's) after a policy search "
                "whose predicted mean cost per step, J/horizon, is below this (a horizon schedule; default: off)", low=0.0),
+        Option("plan_with_noise", bool, False, "planning feeds the policy the task's measurement noise (its input "
+               "N(m, S + N) as it acts on noisy observations; needs a policy on raw states, e.g. the unicycle's; "
+               "default: off, the policy sees the latent state as in the reference code's last version)"),
         Option("sparse_threshold", int, None, "FITC above this many data points (default: task preset)", low=1),
         Option("num_pseudo", int, None, "FITC pseudo-inputs (default: the sparse threshold)", low=1),
         Option("gp_max_evals", int, 300, "GP hyperparameter L-BFGS evaluations per trial", low=0),
@@ -224,6 +227,12 @@ class Pilco(Learner):
         self.horizon = o["planning_horizon"] or preset.planning_horizon or spec.horizon
         self.cost_width = o["cost_width"] or preset.cost_width
         self.num_pseudo = o["num_pseudo"] or self.preset.sparse_threshold
+        self.policy_noise_std = spec.measurement_noise_std if o["plan_with_noise"] else None
+        if self.policy_noise_std is not None:
+            try:
+                self.layout.policy_noise_cov(self.policy_noise_std)
+            except ValueError as exc:
+                raise OptionError(f"plan_with_noise on {spec.name}: {exc} (drop --set plan_with_noise=true)") from None
         self._state: dict[str, Any] = {}  # see state_dict(); filled at every hand-over
 
     @classmethod
@@ -301,7 +310,7 @@ class Pilco(Learner):
 
                 objective = PolicyObjective(
                     controller, model.posterior(), self.layout, spec.cost, spec.init_mean, spec.init_cov,
-                    self.horizon, mean_only=self.mean_only, width=self.cost_width,
+                    self.horizon, mean_only=self.mean_only, width=self.cost_width, policy_noise_std=self.policy_noise_std,
                 )
                 previous = objective.get_flat()
                 try:

@@ -34,6 +34,10 @@ class PolicyObjective:
         init_mean, init_cov: ``(D,)``, ``(D, D)``.
         horizon: number of predicted (and costed) steps H.
         mean_only: deterministic-GP-mean ablation (see :func:`~plugins.pilco.moments.predict_uncertain`).
+        width: planning cost width (``None``: the cost's own).
+        policy_noise_std: ``(D,)`` std of the measurement noise the policy will act through, or
+            ``None`` (the policy sees the latent state, as in the reference code's last version);
+            see :meth:`~plugins.pilco.propagate.StateLayout.policy_noise_cov`.
     """
 
     def __init__(
@@ -47,6 +51,7 @@ class PolicyObjective:
         horizon: int,
         mean_only: bool = False,
         width: float | None = None,
+        policy_noise_std=None,
     ) -> None:
         self.controller = controller
         self.posterior = posterior.detach()
@@ -57,13 +62,15 @@ class PolicyObjective:
         self.init_cov = torch.as_tensor(np.asarray(init_cov, dtype=np.float64))
         self.horizon = int(horizon)
         self.mean_only = bool(mean_only)
+        self.policy_noise = None if policy_noise_std is None else layout.policy_noise_cov(policy_noise_std)
         self.params = [p for p in controller.parameters() if p.requires_grad]
         self.num_params = sum(p.numel() for p in self.params)
 
     # ---- closed form ----------------------------------------------------------------------------
     def state_distributions(self) -> tuple[torch.Tensor, torch.Tensor]:
         """Predicted ``means (H+1, D)``, ``covs (H+1, D, D)`` (index 0 = initial)."""
-        return rollout(self.init_mean, self.init_cov, self.horizon, self.dynamics, self.controller, self.layout, self.mean_only)
+        return rollout(self.init_mean, self.init_cov, self.horizon, self.dynamics, self.controller, self.layout,
+                       self.mean_only, self.policy_noise)
 
     def step_costs(self) -> tuple[torch.Tensor, torch.Tensor]:
         """Expected cost and its variance for ``x_1 .. x_H``: two ``(H,)`` tensors."""

@@ -97,6 +97,22 @@ class StateLayout:
     def model_index(self) -> torch.Tensor:
         return torch.tensor(self.model_inputs, dtype=torch.long)
 
+    def policy_noise_cov(self, noise_std) -> torch.Tensor:
+        """``(p, p)`` covariance of measurement noise with std ``noise_std (D,)`` on the policy's inputs.
+
+        The policy acts on a noisy observation ``x + eps``, ``eps ~ N(0, diag(noise_std^2))``: its
+        input is then ``N(m, S + N)`` while the state stays ``N(m, S)``. Only raw state entries can
+        carry it exactly; noise on an angle enters its sin/cos nonlinearly, so a policy that sees
+        sin/cos entries is refused.
+        """
+        std = torch.as_tensor(np.asarray(noise_std, dtype=np.float64))
+        if std.shape != (self.state_dim,):
+            raise ValueError(f"noise_std has shape {tuple(std.shape)}; the state has {self.state_dim} entries")
+        if any(i >= self.state_dim for i in self.policy_inputs):
+            raise ValueError("measurement noise on the policy's input needs a policy on raw state entries; this "
+                             "layout's policy sees sin/cos of angles")
+        return torch.diag(std[self.policy_index] ** 2)
+
     def augment(self, x: torch.Tensor) -> torch.Tensor:
         """Deterministic ``a(x)`` for ``x (..., D)``."""
         phi = x @ self.angle_map.T
@@ -110,20 +126,24 @@ def propagate_step(
     policy_moments: MomentMap,
     layout: StateLayout,
     mean_only: bool = False,
+    policy_noise: torch.Tensor | None = None,
 ) -> tuple[torch.Tensor, torch.Tensor]:
     """``N(m, S)`` at time t -> ``(m', S')`` at t+1. ``m (D,)``, ``S (D, D)``.
 
     ``dynamics`` is ``MomentMatchingGP(posterior)``, ``policy_moments`` is
     ``controller.moment_map()`` (build both once per rollout); ``mean_only`` is passed to
     :meth:`~plugins.pilco.moments.MomentMatchingGP.predict` (deterministic-GP-mean ablation).
+    ``policy_noise``: ``(p, p)`` measurement-noise covariance added to the policy's input
+    (:meth:`StateLayout.policy_noise_cov`); ``cov[a, u]`` stays ``S_a[:, pol] C_u``, since the
+    noise is independent of the state and ``C_u`` is the policy's mean gradient (Stein's lemma).
 
     With a :class:`~plugins.pilco.controllers.MomentStage` policy and a fixed dynamics model (no
     gradients wrt its posterior) the step is one autograd node with a hand-derived backward pass
     (:class:`FusedStep`); otherwise autograd goes through :func:`propagate_step_autograd`.
     """
     if isinstance(policy_moments, MomentStage) and not dynamics.has_grad:
-        return FusedStep(dynamics, policy_moments, layout, mean_only)(m, S)
-    return propagate_step_autograd(m, S, dynamics, policy_moments, layout, mean_only)
+        return FusedStep(dynamics, policy_moments, layout, mean_only, policy_noise)(m, S)
+    return propagate_step_autograd(m, S, dynamics, policy_moments, layout, mean_only, policy_noise)
 
 
 def propagate_step_autograd(
@@ -133,6 +153,7 @@ def propagate_step_autograd(
     policy_moments: MomentMap,
     layout: StateLayout,
     mean_only: bool = False,
+    policy_noise: torch.Tensor | None = None,
 ) -> tuple[torch.Tensor, torch.Tensor]:
     """:func:`propagate_step` composed of differentiable pieces, differentiated by autograd
     (the reference for :class:`FusedStep`, and the path for dynamics models with gradients)."""
@@ -140,7 +161,8 @@ def propagate_step_autograd(
     ma, sa = augment_trig(m, S, layout.angle_map)  # (A,), (A, A)
     pol, mod = layout.policy_index, layout.model_index
 
-    mu, su, cu = policy_moments(ma[pol], sa[pol[:, None], pol[None, :]])
+    sp = sa[pol[:, None], pol[None, :]]
+    mu, su, cu = policy_moments(ma[pol], sp if policy_noise is None else sp + policy_noise)
     s_au = sa[:, pol] @ cu  # (A, F) cov[a, u]
 
     s_a_mod = sa[:, mod]  # (A, q) cov[a, a_mod]
@@ -166,7 +188,7 @@ class FusedStep:
         trig:     (mt, vt, ct) = moments of [sin, cos](angles)       (2K,), (2K, 2K), (D, 2K)
         augment:  ma = [m, mt],  sa = [[S, S ct], [ct^T S, vt]]        (A,), (A, A)
         policy:   mp = P_pol ma,  sa_p = sa P_pol^T,  sp = P_pol sa_p  (p,), (A, p), (p, p)
-                  (mu, su, cu) = policy(mp, sp),  s_au = sa_p cu       (F,), (F, F), (p, F), (A, F)
+                  (mu, su, cu) = policy(mp, sp [+ N]),  s_au = sa_p cu (F,), (F, F), (p, F), (A, F)
         joint:    mj = [ma, mu],  Sig = [[sa, s_au], [s_au^T, su]]     (A + F,), (A + F, A + F)
         GP input: m_in = P_in mj,  Sig_in = Sig P_in^T,  s_in = P_in Sig_in
         dynamics: (md, vd, cd) = GP moments(m_in, s_in)               (D,), (D, D), (q + F, D)
@@ -178,8 +200,10 @@ class FusedStep:
     stage's tensors. Numerically it is the same computation as :func:`propagate_step_autograd`.
     """
 
-    def __init__(self, dynamics: MomentMatchingGP, policy: MomentStage, layout: StateLayout, mean_only: bool) -> None:
+    def __init__(self, dynamics: MomentMatchingGP, policy: MomentStage, layout: StateLayout, mean_only: bool,
+                 policy_noise: torch.Tensor | None = None) -> None:
         self.dynamics, self.policy, self.layout, self.mean_only = dynamics, policy, layout, mean_only
+        self.policy_noise = policy_noise  # (p, p) or None; a constant: the backward pass is unchanged
         a, f = layout.augmented_dim, dynamics.input_dim - layout.model_input_dim
         self.p_pol = _selection(layout.policy_inputs, a)  # (p, A)
         self.p_in = _selection(layout.model_inputs + tuple(range(a, a + f)), a + f)  # (q + F, A + F)
@@ -240,7 +264,8 @@ class FusedStep:
             sa = torch.cat([torch.cat([S, sc], dim=1), torch.cat([sc.T, vt], dim=1)], dim=0)
         a = ma.shape[0]
         sa_p = sa @ self.p_pol_t  # (A, p)
-        (mu, su, cu), saved_pol = self.policy.forward(self.p_pol @ ma, self.p_pol @ sa_p)
+        sp = self.p_pol @ sa_p
+        (mu, su, cu), saved_pol = self.policy.forward(self.p_pol @ ma, sp if self.policy_noise is None else sp + self.policy_noise)
         s_au = sa_p @ cu  # (A, F) cov[a, u]
         mj = torch.cat([ma, mu])
         sig = torch.cat([torch.cat([sa, s_au], dim=1), torch.cat([s_au.T, su], dim=1)], dim=0)
@@ -319,11 +344,13 @@ def rollout(
     controller: torch.nn.Module,
     layout: StateLayout,
     mean_only: bool = False,
+    policy_noise: torch.Tensor | None = None,
 ) -> tuple[torch.Tensor, torch.Tensor]:
     """Predicted state distributions over ``horizon`` steps from ``N(m0, S0)``.
 
     ``posterior``: the dynamics GP, or a :class:`MomentMatchingGP` of it kept across rollouts (as
     :class:`~plugins.pilco.objective.PolicyObjective` does) to reuse its work buffers.
+    ``policy_noise``: ``(p, p)`` measurement noise on the policy's input (:func:`propagate_step`).
     Returns means ``(H+1, D)`` and covariances ``(H+1, D, D)``; index 0 is the initial state.
     """
     dynamics = posterior if isinstance(posterior, MomentMatchingGP) else MomentMatchingGP(posterior)
@@ -335,11 +362,11 @@ def rollout(
         raise ValueError(f"the dynamics GP takes {posterior.input_dim} inputs; layout + controls give {expected}")
     policy_moments = controller.moment_map()
     if isinstance(policy_moments, MomentStage) and not dynamics.has_grad:
-        return FusedStep(dynamics, policy_moments, layout, mean_only).rollout(m0, S0, horizon)
+        return FusedStep(dynamics, policy_moments, layout, mean_only, policy_noise).rollout(m0, S0, horizon)
     means, covs = [m0], [S0]
     m, S = m0, S0
     for _ in range(horizon):
-        m, S = propagate_step_autograd(m, S, dynamics, policy_moments, layout, mean_only)
+        m, S = propagate_step_autograd(m, S, dynamics, policy_moments, layout, mean_only, policy_noise)
         means.append(m)
         covs.append(S)
     return torch.stack(means), torch.stack(covs)

@@ -3,7 +3,8 @@
 PILCO's J(theta) refits a Gaussian to the state distribution at every step (moment matching) and
 sums the expected cost in closed form. :func:`sampled_costs` runs the *same* model and policy on
 particles instead: ``x_0 ~ N(mu0, Sigma0)``; at each step every particle is augmented, the policy
-(with its squashing) gives its control, and the next state is ``x + Delta`` with ``Delta`` drawn
+(with its squashing) gives its control (from the particle plus measurement noise if the objective
+plans with it), and the next state is ``x + Delta`` with ``Delta`` drawn
 from the GP's predictive distribution at that particle, ``N(mean_a, var_a)`` independently per
 output ``a`` (latent variance, no observation noise, as in the prediction; ``mean_only``: the
 mean alone). The per-step mean cost of the particles converges to the model's own expected cost
@@ -43,10 +44,14 @@ def sample_states(objective: PolicyObjective, particles: int, seed: int = 0) -> 
     d = objective.init_mean.shape[0]
     x = objective.init_mean + torch.randn(particles, d, generator=gen, dtype=torch.float64) @ root.T
     states = [x]
+    noise_std = None if objective.policy_noise is None else objective.policy_noise.diagonal().sqrt()
     with torch.no_grad():
         for _ in range(objective.horizon):
             a = layout.augment(x)
-            u = objective.controller(a[:, layout.policy_index])
+            seen = a[:, layout.policy_index]
+            if noise_std is not None:
+                seen = seen + noise_std * torch.randn(seen.shape, generator=gen, dtype=torch.float64)
+            u = objective.controller(seen)
             mean, var = predict_latent(posterior, torch.cat([a[:, layout.model_index], u], dim=1))
             x = x + mean
             if not objective.mean_only:

@@ -52,7 +52,7 @@ def _policy_moments(ctrl, m, S):
     return ms @ G.T, G @ vs @ G.T, cz @ cs @ G.T
 
 
-def _reference_step(m, S, post, ctrl, layout, mean_only):
+def _reference_step(m, S, post, ctrl, layout, mean_only, policy_noise=None):
     d = layout.state_dim
     if layout.num_angles:
         mt, vt, ct = _sin_forward(m, S, *_doubled(layout.angle_map))[0]
@@ -61,7 +61,8 @@ def _reference_step(m, S, post, ctrl, layout, mean_only):
     else:
         ma, sa = m, S
     pol, mod = layout.policy_index, layout.model_index
-    mu, su, cu = _policy_moments(ctrl, ma[pol], sa[pol][:, pol])
+    sp = sa[pol][:, pol]
+    mu, su, cu = _policy_moments(ctrl, ma[pol], sp if policy_noise is None else sp + policy_noise)
     s_au = sa[:, pol] @ cu
     m_in = torch.cat([ma[mod], mu])
     s_in = torch.cat([torch.cat([sa[mod][:, mod], s_au[mod]], 1), torch.cat([s_au[mod].T, su], 1)], 0)
@@ -75,7 +76,7 @@ def _reference_value_and_grad(obj: PolicyObjective) -> tuple[float, np.ndarray]:
     m, S = obj.init_mean, obj.init_cov
     means, covs = [], []
     for _ in range(obj.horizon):
-        m, S = _reference_step(m, S, obj.posterior, obj.controller, obj.layout, obj.mean_only)
+        m, S = _reference_step(m, S, obj.posterior, obj.controller, obj.layout, obj.mean_only, obj.policy_noise)
         means.append(m)
         covs.append(S)
     J = obj.cost(torch.stack(means), torch.stack(covs))[0].sum()
@@ -91,6 +92,15 @@ def _objective(case: str) -> PolicyObjective:
         cost = SaturatingCost(np.zeros((0, 3)), np.array([[1.0, 0.0, 0.5]]), np.array([0.3]), 1.0)
         post = random_posterior(3, 30, 4, gen)
         return PolicyObjective(ctrl, post, layout, cost, [0.1, -0.2, 0.3], 0.05 * np.eye(3), 12)
+    if case == "no-angles-rbf-policy-noise":
+        layout = StateLayout(3, (), (0, 1, 2), (0, 2))
+        base = RBFController.initial(torch.tensor([0.1, 0.3], dtype=DT), 0.2 * torch.eye(2, dtype=DT), 6, 1, torch.ones(2, dtype=DT), gen)
+        with torch.no_grad():
+            base.targets.mul_(4.0)
+        cost = SaturatingCost(np.zeros((0, 3)), np.array([[1.0, 0.0, 0.5]]), np.array([0.3]), 1.0)
+        post = random_posterior(3, 30, 4, gen)
+        return PolicyObjective(SquashedController(base, [2.0]), post, layout, cost, [0.1, -0.2, 0.3], 0.05 * np.eye(3), 12,
+                               policy_noise_std=[0.3, 0.1, 0.2])
     if case == "two-angles-linear":
         layout = StateLayout.with_trig(4, [2, 3])  # inputs [x0, x1, sin x2, sin x3, cos x2, cos x3]
         cost = SaturatingCost(np.array([[0.0, 0, 1, 0], [0, 0, 0, 1]]), np.array([[0, 0, 0, 0, 1.0, 0, 0, 0], [0, 0, 0, 0, 0, 0, 0, 1.0]]), np.array([0.0, 1.0]), 0.7)
@@ -112,7 +122,8 @@ def _objective(case: str) -> PolicyObjective:
     return PolicyObjective(ctrl, post, layout, cost, [0.0, 0.1, -0.1, 0.3], 0.1 * np.eye(4) ** 2, 15, mean_only=mean_only)
 
 
-@pytest.mark.parametrize("case", ["rbf", "rbf-two-controls", "rbf-fitc-mean-only", "linear-sin", "no-angles-linear", "two-angles-linear"])
+@pytest.mark.parametrize("case", ["rbf", "rbf-two-controls", "rbf-fitc-mean-only", "linear-sin", "no-angles-linear", "two-angles-linear",
+                                  "no-angles-rbf-policy-noise"])
 def test_fused_objective_equals_plain_autograd(case: str) -> None:
     obj = _objective(case)
     theta = obj.get_flat()
@@ -122,6 +133,17 @@ def test_fused_objective_equals_plain_autograd(case: str) -> None:
     rel = np.linalg.norm(grad - grad_ref) / np.linalg.norm(grad_ref)
     assert rel < 1e-10, rel
     assert np.max(np.abs(grad - grad_ref)) < 1e-10 * np.max(np.abs(grad_ref))
+
+
+def test_policy_noise_changes_the_objective() -> None:
+    """The noise case above is not vacuous: without the noise J and dJ differ (and the noise
+    covariance lands on the policy's inputs only)."""
+    obj = _objective("no-angles-rbf-policy-noise")
+    torch.testing.assert_close(obj.policy_noise, torch.diag(torch.tensor([0.3, 0.2], dtype=DT) ** 2))
+    J, grad = obj(obj.get_flat())
+    obj.policy_noise = None
+    J0, grad0 = obj(obj.get_flat())
+    assert abs(J - J0) > 1e-3 * abs(J0) and np.linalg.norm(grad - grad0) > 1e-2 * np.linalg.norm(grad0)
 
 
 def _graph_nodes(tensor: torch.Tensor) -> list[str]:

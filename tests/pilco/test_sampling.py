@@ -9,7 +9,8 @@ from plugins.pilco.controllers import LinearController, SquashedController
 from plugins.pilco.objective import PolicyObjective
 from plugins.pilco.propagate import StateLayout
 from plugins.pilco.sampling import sample_states, sampled_costs
-from tests.pilco.random_gp import DT, pendulum_posterior
+from harness.task import SaturatingCost
+from tests.pilco.random_gp import DT, pendulum_posterior, random_posterior
 from tests.pilco.test_objective import pendulum_cost
 
 torch.set_num_threads(1)
@@ -42,6 +43,32 @@ def test_one_step_moments_match_moment_matching():
     np.testing.assert_allclose(((x1.mean(0) - means[1]) / sd).numpy(), 0.0, atol=0.01)
     np.testing.assert_allclose((torch.cov(x1.T) / (sd[:, None] * sd[None, :])).numpy(),
                                (covs[1] / (sd[:, None] * sd[None, :])).numpy(), atol=0.015)
+
+
+def test_one_step_moments_with_measurement_noise_on_the_policy_input():
+    """A policy acting on noisy observations (``policy_noise_std``): with a linear policy the state
+    and control are exactly jointly Gaussian, so one moment-matching step is exact, and 200k
+    particles (each control from the particle plus its own noise draw) agree to MC error. The noise
+    moves the prediction, so the check has teeth."""
+    gen = torch.Generator().manual_seed(8)
+    post = random_posterior(3, 30, 4, gen)
+    layout = StateLayout(3, (), (0, 1, 2), (0, 2))
+    cost = SaturatingCost(np.zeros((0, 3)), np.array([[1.0, 0.0, 0.5]]), np.array([0.3]), 1.0)
+    ctrl = LinearController(torch.tensor([[1.5, -1.0]], dtype=DT), torch.tensor([0.2], dtype=DT))
+    moments = []
+    for noise in ([0.4, 0.0, 0.3], None):
+        obj = PolicyObjective(ctrl, post, layout, cost, [0.1, -0.2, 0.3], 0.02 * np.eye(3), 1, policy_noise_std=noise)
+        with torch.no_grad():
+            means, covs = obj.state_distributions()
+        moments.append((means[1], covs[1]))
+        if noise is not None:
+            x1 = sample_states(obj, 200_000, seed=5)[1]
+            sd = covs[1].diagonal().sqrt()
+            np.testing.assert_allclose(((x1.mean(0) - means[1]) / sd).numpy(), 0.0, atol=0.01)
+            np.testing.assert_allclose((torch.cov(x1.T) / (sd[:, None] * sd[None, :])).numpy(),
+                                       (covs[1] / (sd[:, None] * sd[None, :])).numpy(), atol=0.015)
+    (m_noisy, S_noisy), (m_clean, S_clean) = moments
+    assert float((S_noisy.diagonal() / S_clean.diagonal()).max()) > 1.2
 
 
 def test_from_a_point_the_spread_is_the_models_predictive_variance():

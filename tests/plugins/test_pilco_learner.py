@@ -9,7 +9,7 @@ import pytest
 import torch
 
 from harness.discovery import load_learner
-from harness.errors import NumericalError
+from harness.errors import NumericalError, OptionError
 from harness.runner import RunConfig, run
 from harness.testing import LearnerConformance
 from harness.tracking import MemoryTracker
@@ -68,6 +68,19 @@ def test_planning_horizon_and_cost_width_come_from_the_task_preset():
     assert (cartpole.horizon, cartpole.cost_width) == (CartPole().spec.horizon, None)
     overridden = Pilco(DMCCartpole().spec, {"planning_horizon": "100", "cost_width": "0.25"}, seed=0)
     assert (overridden.horizon, overridden.cost_width) == (100, 0.25)
+
+
+def test_plan_with_noise_uses_the_tasks_measurement_noise_and_refuses_trig_policies():
+    """The unicycle's policy sees raw states: planning adds the task's observation noise to its
+    input. Cart-pole's sees sin/cos of the angle: a clear option error naming the fix."""
+    from tasks.unicycle import Unicycle
+
+    spec = Unicycle().spec
+    learner = Pilco(spec, {"plan_with_noise": "true"}, seed=0)
+    np.testing.assert_array_equal(learner.policy_noise_std, spec.measurement_noise_std)
+    assert Pilco(spec, {}, seed=0).policy_noise_std is None
+    with pytest.raises(OptionError, match="plan_with_noise on cartpole: .*sin/cos of angles.*drop --set plan_with_noise=true"):
+        Pilco(CartPole().spec, {"plan_with_noise": "true"}, seed=0)
 
 
 def test_horizon_schedule_doubles_up_to_the_task_horizon_when_the_policy_does_well():
