@@ -23,7 +23,8 @@ steps, plus the same model by Monte Carlo (:func:`plugins.pilco.sampling.sampled
 real task (the harness's :class:`~harness.evaluation.Evaluator`, ``--episodes`` episodes, seeds
 100000 + i, measurement noise on, a fall held to the end) it reports each policy's summed cost over
 the same horizons and its success rate, and the success rate of the same episodes without
-measurement noise (PILCO's planning feeds the policy the noise-free state). GP diagnostics on those real episodes, within the
+measurement noise (PILCO's planning feeds the policy the noise-free state; J with the noise on the
+policy's input, the learner's ``plan_with_noise``, is a column too). GP diagnostics on those real episodes, within the
 trial's planning horizon: the GP's latent predictive variance relative to its signal variance
 (0 = at the data, 1 = prior), the median one-step error of the GP mean on the true (noise-free)
 states relative to the GP's noise std (both averaged over the 10 outputs), and the fraction of the
@@ -76,10 +77,11 @@ DEFAULT_RUN = "a3e1c149352342babeb677f26a9ff0ac"
 DEFAULT_URI = f"sqlite:///{ROOT / 'results' / 'runs' / 'mlflow.db'}"
 
 
-def objective_for(policy: PilcoPolicy, model: GPModel, spec, horizon: int, width, mean_only: bool) -> PolicyObjective:
+def objective_for(policy: PilcoPolicy, model: GPModel, spec, horizon: int, width, mean_only: bool,
+                  policy_noise_std=None) -> PolicyObjective:
     """The learner's J(theta) for ``policy`` under ``model`` (as in :meth:`Pilco.learn`)."""
     return PolicyObjective(policy.controller, model.posterior(), policy.layout, spec.cost, spec.init_mean, spec.init_cov,
-                           horizon, mean_only=mean_only, width=width)
+                           horizon, mean_only=mean_only, width=width, policy_noise_std=policy_noise_std)
 
 
 def predicted_J(objective: PolicyObjective, particles: int) -> tuple[float, float]:
@@ -245,12 +247,13 @@ def main(argv: list[str] | None = None) -> None:
         for (label, key, policy), (model_name, model) in itertools.product(candidates, models[trial]):
             t = time.perf_counter()
             J = {h: predicted_J(objective_for(policy, model, spec, h, width, mean_only), args.particles) for h in horizons}
+            J_noisy = predicted_J(objective_for(policy, model, spec, H, width, mean_only, spec.measurement_noise_std), 0)[0]
             summary, episodes = real(key, policy)
             var_ratio, nrmse = gp_diagnostics(model, episodes, policy.layout, H)
             falls_gp, falls_real = gp_mean_falls(model, policy, episodes, task, H), real_falls_within(episodes, H)
-            rows.append((trial, label, model_name, J, summary, var_ratio, nrmse, falls_gp, falls_real))
+            rows.append((trial, label, model_name, J, J_noisy, summary, var_ratio, nrmse, falls_gp, falls_real))
             print(f"  {label:22s} {model_name:11s} J " + "  ".join(f"H{h} {J[h][0]:.2f} (MC {J[h][1]:.2f})" for h in horizons)
-                  + f"  real " + "  ".join(f"H{h} {summary['cost'][h]:.2f}" for h in horizons)
+                  + f"  noisy input H{H} {J_noisy:.2f}  real " + "  ".join(f"H{h} {summary['cost'][h]:.2f}" for h in horizons)
                   + f"  var/prior {var_ratio:.3f}  err/noise {nrmse:.3f}  falls({H}) GP-mean {falls_gp:.2f} real {falls_real:.2f}  ({time.perf_counter() - t:.0f} s)", flush=True)
 
     # ---- the learner's policy search started from the LQRs ---------------------------------------
@@ -298,7 +301,9 @@ def main(argv: list[str] | None = None) -> None:
         + ", ".join(f"trial {t}: {plan_h[t]}" for t in sorted(set(args.trials) | set(args.search_trials))) + ".", "",
         "**J(H) MM** = the learner's objective (moment matching, sum of expected cost over H steps from the task's "
         "N(mu0, Sigma0), cost width 1, saved layout) under the GP trained at that trial (**GP**: the run's own model, "
-        "FITC or full; *full refit*: a full GP refitted to the same data, warm-started at the run's hyperparameters); **J(H) MC** = the same GP and "
+        "FITC or full; *full refit*: a full GP refitted to the same data, warm-started at the run's hyperparameters); "
+        "**J(Hp) MM, noisy policy input** = the same over the trial's planning horizon Hp with the task's measurement "
+        "noise on the policy's input (learner option `plan_with_noise`); **J(H) MC** = the same GP and "
         f"policy by Monte Carlo ({args.particles} particles, seed 0); *fail* = the closed form broke down (Cholesky). "
         f"**real cost(H)** = mean over {args.episodes} real episodes (seeds 100000 + i, measurement noise on) of the "
         "cost summed over the first H steps, a fall holding its last cost; success = the task's rule; *no measurement "
@@ -310,11 +315,11 @@ def main(argv: list[str] | None = None) -> None:
         "GP-mean / real** = fraction of the real episodes' start states from which the deterministic GP-mean rollout "
         "under the policy reaches the fall region (|theta| or |psi_f| > pi/2) within the planning horizon Hp / "
         "fraction of the real episodes that fell within Hp.", "",
-        f"| trial | policy | GP | {hcols} | {rcols} | success | success, no measurement noise | falls | GP var/prior | 1-step err/noise | falls(Hp) GP-mean / real |",
-        "|---|---|---|" + "---|" * (3 * len(horizons) + 6),
+        f"| trial | policy | GP | {hcols} | J(Hp) MM, noisy policy input | {rcols} | success | success, no measurement noise | falls | GP var/prior | 1-step err/noise | falls(Hp) GP-mean / real |",
+        "|---|---|---|" + "---|" * (3 * len(horizons) + 7),
     ]
-    for trial, label, model_name, J, s, var_ratio, nrmse, falls_gp, falls_real in rows:
-        lines.append(f"| {trial} | {label} | {model_name} | " + " | ".join(f"{fmt(J[h][0])} | {fmt(J[h][1]) if args.particles else '-'}" for h in horizons) + " | "
+    for trial, label, model_name, J, J_noisy, s, var_ratio, nrmse, falls_gp, falls_real in rows:
+        lines.append(f"| {trial} | {label} | {model_name} | " + " | ".join(f"{fmt(J[h][0])} | {fmt(J[h][1]) if args.particles else '-'}" for h in horizons) + f" | {fmt(J_noisy)} | "
                      + " | ".join(f"{s['cost'][h]:.2f}" for h in horizons)
                      + f" | {100 * s['success']:.0f} % | {100 * s['success_noise_free']:.0f} % | {100 * s['falls']:.0f} % | {var_ratio:.4f} | {nrmse:.2f} | "
                      f"{100 * falls_gp:.0f} % / {100 * falls_real:.0f} % |")
