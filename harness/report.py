@@ -23,7 +23,9 @@ with ``@<sweep id>`` added where settings do not tell sweeps apart; files named 
 the same name as a slug (``prediction_cartpole_pilco_horizon-30.png``).
 
 With ``include_bench``, `harness bench` runs outside sweeps are reported too, grouped by
-configuration (learner, task, limits, resolved options) into pseudo-sweeps ``bench-<hash>``.
+configuration (learner, task, limits, resolved options) into pseudo-sweeps ``bench-<hash>``
+(options at their current default are left out of the hash: an option added later does not split
+a group).
 
 Which run counts for a cell: the newest FINISHED child of the cell, else the newest child. A cell
 whose counted run FAILED (the learner raised) counts as unsolved and is listed under "errors";
@@ -38,6 +40,7 @@ When sweep ids are given, each sweep's rows are also logged on its parent run wi
 from __future__ import annotations
 
 import csv
+import functools
 import hashlib
 import json
 import math
@@ -192,6 +195,30 @@ def _sweep_groups(client) -> list[tuple[SweepInfo, list]]:
     return out
 
 
+def bench_group_id(config: dict[str, str], defaults: dict[str, str]) -> str:
+    """``bench-<hash>`` of a run's configuration without the options at their current default
+    (``defaults``, params as strings): a run made before an option existed and one made after,
+    with the option at its default, did the same and share a group."""
+    blob = json.dumps(sorted((k, v) for k, v in config.items() if defaults.get(k) != v))
+    return "bench-" + hashlib.sha256(blob.encode()).hexdigest()[:8]
+
+
+@functools.lru_cache(maxsize=None)
+def _option_defaults(learner: str, task: str) -> dict[str, str]:
+    """The installed plugins' option defaults as logged params (``learner.<k>``, ``task.<k>``);
+    empty for a plugin that is not installed here."""
+    from harness.discovery import load_learner, load_task
+
+    defaults: dict[str, str] = {}
+    for prefix, loader, name in (("learner", load_learner, learner), ("task", load_task, task)):
+        try:
+            option_set = loader(name).option_set()
+        except HarnessError:
+            continue
+        defaults.update({f"{prefix}.{k}": str(v) for k, v in option_set.defaults().items()})
+    return defaults
+
+
 def _bench_groups(client) -> list[tuple[SweepInfo, list]]:
     """`harness bench` runs (outside sweeps), grouped by configuration into pseudo-sweeps
     ``bench-<hash>``: same learner, task, limits and resolved options; seeds vary."""
@@ -204,8 +231,7 @@ def _bench_groups(client) -> list[tuple[SweepInfo, list]]:
             if ROLE_TAG in run.data.tags or "learner" not in run.data.tags:
                 continue
             config = {k: v for k, v in run.data.params.items() if k in ("learner", "task")} | run_config(run.data.params)
-            blob = json.dumps(sorted(config.items()))
-            group_id = "bench-" + hashlib.sha256(blob.encode()).hexdigest()[:8]
+            group_id = bench_group_id(config, _option_defaults(config.get("learner", ""), config.get("task", "")))
             grouped[group_id].append(run)
             config_of[group_id] = config
     out = []

@@ -343,6 +343,20 @@ def test_bench_runs_are_grouped_by_configuration(swept, tmp_path, monkeypatch):
     assert "harness bench --learner sweep-steps --task sweep-toy --seed S --max-trials 2 --eval-episodes 2  (S = 2-3" in (out / "sweeps.md").read_text()
 
 
+def test_bench_group_ignores_options_at_their_default():
+    """A run logged before an option existed and one with the option at its default share a group;
+    the option set otherwise, or any other setting, splits it. Defaults come from the installed plugins."""
+    from harness.report import _option_defaults, bench_group_id
+
+    old = {"learner": "pilco", "task": "unicycle", "max_trials": "30", "learner.planning_horizon": "20"}
+    defaults = _option_defaults("pilco", "unicycle")
+    assert defaults["learner.plan_with_noise"] == "False" and defaults["task.init"] == "paper"
+    assert bench_group_id({**old, "learner.plan_with_noise": "False"}, defaults) == bench_group_id(old, defaults)
+    assert bench_group_id({**old, "learner.plan_with_noise": "True"}, defaults) != bench_group_id(old, defaults)
+    assert bench_group_id({**old, "max_trials": "40"}, defaults) != bench_group_id(old, defaults)
+    assert _option_defaults("no-such-learner", "no-such-task") == {}
+
+
 def test_test_table_marks_runs_stopped_before_their_limit():
     from harness.report import test_markdown
 
