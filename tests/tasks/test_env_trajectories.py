@@ -21,8 +21,12 @@ _spec.loader.exec_module(recorder)
 
 FIXTURE = np.load(DATA / "env_trajectories.npz")
 
-#: max-abs tolerance on observations/states/rewards against the old code: none, the floats are equal
+#: max-abs tolerance on observations/states against the old code: none, the floats are equal
 TOLERANCE = {"cartpole": 0.0, "double-pendulum": 0.0, "unicycle": 0.0, "dmc-cartpole": 0.0}
+#: rewards (in [-1, 0]) may differ in the last bit: the cost's sin/cos/exp and its small matrix
+#: products go through numpy/BLAS kernels chosen per CPU (on an AMD EPYC without AVX-512 the
+#: unicycle's recorded rewards differ by 1.1e-16 at 7 of 200 steps, its states not at all)
+REWARD_ULPS = 4 * np.finfo(np.float64).eps
 
 
 @pytest.mark.parametrize("name", list(recorder.TASKS))
@@ -36,6 +40,7 @@ def test_rollout_reproduces_the_recording_of_the_old_code(name):
     np.testing.assert_array_equal(new["actions"], old["actions"])
     for flag in ("terminated", "truncated"):
         np.testing.assert_array_equal(new[flag], old[flag], err_msg=flag)
-    for key in ("obs", "state", "reward", "reset_obs"):
+    for key in ("obs", "state", "reset_obs"):
         np.testing.assert_allclose(new[key], old[key], rtol=0.0, atol=TOLERANCE[name], err_msg=key)
+    np.testing.assert_allclose(new["reward"], old["reward"], rtol=0.0, atol=max(TOLERANCE[name], REWARD_ULPS), err_msg="reward")
     np.testing.assert_allclose(new["dmc_reward"], old["dmc_reward"], rtol=0.0, atol=1e-12, equal_nan=True)
