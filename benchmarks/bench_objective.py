@@ -248,9 +248,10 @@ def main() -> None:
         "* torch.compile (inductor, one compiled graph per time step) was tried once on an earlier "
         "version of this code: about 200 s of compilation for 0.29 s instead of 0.33 s per evaluation "
         "at n = 100, so it is not used.",
-        "* Memory: nothing of size n^2 is kept per time step; the backward pass recomputes each step's "
-        "Q = exp(left right^T) (P x n x n) into a scratch buffer reused by all steps (before: 40 kept "
-        "buffers of 7.2 MB at n = 300, ~290 MB).",
+        "* Memory: a rollout whose gradient is taken keeps each step's Q = exp(left right^T) (P x n x n; "
+        "40 x 7.2 MB at n = 300 here) in buffers allocated once per objective and reused by every "
+        "evaluation, so that the backward pass does not recompute it; above HARNESS_PILCO_KEEP_Q_MB "
+        "(default 3072) per GP the remaining steps recompute Q into one scratch buffer.",
         "",
     ]
     if prof:

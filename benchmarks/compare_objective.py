@@ -8,7 +8,10 @@ Every measurement runs in a fresh subprocess with one torch thread (``PYTHONPATH
 so each side imports its own ``plugins.pilco``); the subprocesses alternate ``before, after,
 before, after, ...`` so that both sides see the same machine load. Each builds the objective of
 ``benchmarks/bench_objective.py`` (cart-pole, T = 40, RBF policy with 50 centres; full GP with
-n = 100 and 300, FITC with n = 1000 and 300 pseudo-inputs) and reports, per configuration:
+n = 100 and 300, FITC with n = 1000 and 300 pseudo-inputs) or, with ``--tasks``, the learner's
+objective at a real task's size (``benchmarks/task_objectives.py``, loaded from *this* checkout by
+both sides: the unicycle, 55 output pairs on n = 300 basis points over 40 steps; the
+cart-double-pendulum, 21 pairs on n = 400 over 60 steps) and reports, per configuration:
 
 * median wall and CPU (``time.process_time``) milliseconds of ``--repeats`` J + dJ evaluations
   after 3 warm-ups (the medians of the rounds are then medianed);
@@ -26,6 +29,7 @@ Writes a markdown table to ``--out`` (default ``results/benchmarks/objective_gra
 from __future__ import annotations
 
 import argparse
+import importlib.util
 import json
 import os
 import statistics
@@ -38,23 +42,32 @@ import numpy as np
 
 ROOT = Path(__file__).resolve().parents[1]
 CONFIGS = {"full n=100": (100, None), "full n=300": (300, None), "FITC n=1000, 300 pseudo": (1000, 300)}
+TASK_FILE = ROOT / "benchmarks" / "task_objectives.py"
 
 CHILD = r"""
 import json, os, sys, time
-root, n, pseudo, repeats = sys.argv[1], int(sys.argv[2]), sys.argv[3], int(sys.argv[4])
+root, config, repeats, task_file = sys.argv[1], sys.argv[2], int(sys.argv[3]), sys.argv[4]
 sys.path.insert(0, root)
 import numpy as np, torch
 torch.set_num_threads(1)
 sys.argv = [sys.argv[0]]
 from collections import Counter
 from torch.utils._python_dispatch import TorchDispatchMode
-from benchmarks.bench_objective import dynamics_posterior, make_objective
 
 def status_mb(key):
     with open("/proc/self/status") as fh:
         return int(next(l for l in fh if l.startswith(key)).split()[1]) / 1024
 
-obj = make_objective(dynamics_posterior(n, None if pseudo == "-" else int(pseudo)))
+if config.startswith("task:"):
+    import importlib.util
+    spec = importlib.util.spec_from_file_location("task_objectives", task_file)
+    tasks = importlib.util.module_from_spec(spec)
+    spec.loader.exec_module(tasks)
+    obj = tasks.task_objective(*tasks.TASK_CONFIGS[config[5:]])
+else:
+    from benchmarks.bench_objective import dynamics_posterior, make_objective
+    n, pseudo = json.loads(config)
+    obj = make_objective(dynamics_posterior(n, pseudo))
 theta = obj.get_flat()
 hwm0 = status_mb("VmHWM")
 for _ in range(3):
@@ -85,13 +98,14 @@ print(json.dumps(dict(wall=1e3 * float(np.median(wall)), cpu=1e3 * float(np.medi
 """
 
 
-def run_child(root: str, n: int, pseudo: int | None, repeats: int) -> dict:
+def run_child(root: str, config: str, repeats: int) -> dict:
+    """One side's measurements in a fresh process; ``config``: ``json [n, pseudo]`` or ``task:<name>``."""
     env = dict(os.environ, PYTHONPATH=root, OMP_NUM_THREADS="1", MKL_NUM_THREADS="1")
-    args = [sys.executable, "-c", CHILD, root, str(n), "-" if pseudo is None else str(pseudo), str(repeats)]
+    args = [sys.executable, "-c", CHILD, root, config, str(repeats), str(TASK_FILE)]
     proc = subprocess.run(args, capture_output=True, text=True, env=env, cwd=root, check=False)
     if proc.returncode != 0:
-        raise RuntimeError(f"child failed for {root} n={n}:\n{proc.stderr}")
-    return json.loads(proc.stdout)
+        raise RuntimeError(f"child failed for {root} {config}:\n{proc.stderr}")
+    return json.loads(proc.stdout.strip().splitlines()[-1])
 
 
 def main() -> None:
@@ -100,23 +114,34 @@ def main() -> None:
     parser.add_argument("--after", default=str(ROOT), help="checkout with the new implementation")
     parser.add_argument("--rounds", type=int, default=3)
     parser.add_argument("--repeats", type=int, default=10)
-    parser.add_argument("--out", default=str(ROOT / "results" / "benchmarks" / "objective_gradient_before_after.md"))
+    parser.add_argument("--tasks", action="store_true", help="the real-task configurations of benchmarks/task_objectives.py instead of the cart-pole ones")
+    parser.add_argument("--out", default=None, help="default: results/benchmarks/objective_gradient_before_after[_tasks].md")
     args = parser.parse_args()
     sides = {"before": str(Path(args.before).resolve()), "after": str(Path(args.after).resolve())}
+    if args.tasks:
+        spec = importlib.util.spec_from_file_location("task_objectives", TASK_FILE)
+        module = importlib.util.module_from_spec(spec)
+        spec.loader.exec_module(module)
+        configs = {name: f"task:{name}" for name in module.TASK_CONFIGS}
+    else:
+        configs = {name: json.dumps([n, pseudo]) for name, (n, pseudo) in CONFIGS.items()}
+    out = args.out or str(ROOT / "results" / "benchmarks" / f"objective_gradient_before_after{'_tasks' if args.tasks else ''}.md")
 
     load_before = os.getloadavg()
-    results = {name: {side: [] for side in sides} for name in CONFIGS}
+    results = {name: {side: [] for side in sides} for name in configs}
     for _ in range(args.rounds):
-        for name, (n, pseudo) in CONFIGS.items():
+        for name, config in configs.items():
             for side, root in sides.items():
-                results[name][side].append(run_child(root, n, pseudo, args.repeats))
+                results[name][side].append(run_child(root, config, args.repeats))
                 r = results[name][side][-1]
                 print(f"{name:26s} {side:6s} wall {r['wall']:7.1f} ms  cpu {r['cpu']:7.1f} ms", flush=True)
     load_after = os.getloadavg()
 
     command = ".venv/bin/python benchmarks/compare_objective.py " + " ".join(sys.argv[1:])
     lines = [
-        "# PILCO objective J + dJ: before / after, side by side (cart-pole setting of bench_objective.py)",
+        "# PILCO objective J + dJ: before / after, side by side ("
+        + ("the learner's objective at the unicycle's and the cart-double-pendulum's sizes, benchmarks/task_objectives.py)" if args.tasks
+           else "cart-pole setting of bench_objective.py)"),
         "",
         f"Command: `{command.strip()}`  ",
         f"Date: {time.strftime('%Y-%m-%d %H:%M:%S UTC', time.gmtime())}; load average before/after: "
@@ -143,8 +168,8 @@ def main() -> None:
             f"| {b['ulp_rel_j']:.1e}, {b['ulp_rel_g']:.1e} |"
         )
     text = "\n".join(lines) + "\n"
-    Path(args.out).parent.mkdir(parents=True, exist_ok=True)
-    Path(args.out).write_text(text)
+    Path(out).parent.mkdir(parents=True, exist_ok=True)
+    Path(out).write_text(text)
     print()
     print(text)
 

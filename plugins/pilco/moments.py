@@ -38,14 +38,18 @@ Implementation notes (all float64, vectorised over outputs and basis points):
   ``(pairs, n, d)`` intermediates are kept) and tested equal to autograd through the same forward
   to 1e-11. Policy evaluation is dominated by the number of small operator calls, and autograd
   needs about three times as many.
-* The backward pass recomputes ``Q`` (one product and one ``exp``) instead of keeping it: a
-  rollout then holds no ``(pairs, n, n)`` tensors (40 x 7.2 MB for the cart-pole at n = 300
-  before), and the ``(pairs, n, n)`` work is done in two reused buffers (:class:`_Workspace`):
-  touching fresh memory costs about as much as the arithmetic on it.
+* A rollout whose gradient will be taken keeps each step's ``Q`` in a buffer of its own
+  (:meth:`_Workspace.keep`, allocated once per :class:`MomentMatchingGP` and reused by every
+  evaluation: touching fresh memory costs about as much as the arithmetic on it), so that the
+  backward pass does not recompute it (one product and one ``exp`` per step). Above
+  :data:`KEEP_Q_BYTES` per GP, and wherever a kept ``Q`` was overwritten since its forward pass,
+  the backward pass recomputes ``Q`` into a shared scratch buffer instead.
 """
 
 from __future__ import annotations
 
+import math
+import os
 from functools import lru_cache
 
 import torch
@@ -68,17 +72,50 @@ def _pair_indices(num_outputs: int) -> tuple[torch.Tensor, torch.Tensor, torch.T
     return as_long([p[0] for p in pairs]), as_long([p[1] for p in pairs]), as_long(full)
 
 
+#: memory one :class:`MomentMatchingGP` may hold for the ``Q`` of a rollout's steps between its
+#: forward and backward pass (default 3 GiB: the unicycle's 67 steps at n = 300 take 2.65 GB);
+#: environment variable ``HARNESS_PILCO_KEEP_Q_MB``, 0 = always recompute
+KEEP_Q_BYTES = int(float(os.environ.get("HARNESS_PILCO_KEEP_Q_MB", "3072")) * 2**20)
+
+
 class _Workspace:
-    """Reusable scratch buffers for the contraction: ``Q (P, n, n)``, and ``Q * inv_k (E, n, n)`` in
-    the backward pass.
+    """Reusable buffers for the contraction: the scratch ``Q (P, n, n)`` and ``Q * inv_k (E, n, n)``,
+    and the kept ``Q`` of each step of a rollout (:meth:`keep`).
 
     Fresh multi-megabyte tensors are expensive here (first-touch page faults cost about as much as
     the arithmetic), so every prediction with one :class:`MomentMatchingGP` writes into the same
-    buffers. Nothing in them outlives a call: the backward pass recomputes ``Q``.
+    buffers. A kept ``Q`` carries a stamp; :meth:`kept` returns it only while its slot has not been
+    written again (a later rollout reuses the slots).
     """
 
-    def __init__(self) -> None:
+    def __init__(self, keep_bytes: int | None = None) -> None:
         self.buffers: dict[str, torch.Tensor] = {}
+        self.keep_bytes = KEEP_Q_BYTES if keep_bytes is None else keep_bytes
+        self.slots: list[torch.Tensor] = []
+        self.stamps: list[int] = []
+        self.writes = 0
+
+    def keep(self, slot: int, shape: tuple[int, ...], dtype: torch.dtype) -> tuple[torch.Tensor, tuple[int, int]] | None:
+        """The buffer for step ``slot``'s ``Q`` and its stamp ``(slot, stamp)``, or ``None`` when slots
+        ``0..slot`` of this shape would exceed ``keep_bytes``."""
+        if (slot + 1) * math.prod(shape) * torch.finfo(dtype).bits // 8 > self.keep_bytes:
+            return None
+        if self.slots and (self.slots[0].shape != shape or self.slots[0].dtype != dtype):
+            self.slots, self.stamps = [], []
+        while len(self.slots) <= slot:
+            with torch.inference_mode(False):
+                self.slots.append(torch.empty(shape, dtype=dtype))
+            self.stamps.append(0)
+        self.writes += 1
+        self.stamps[slot] = self.writes
+        return self.slots[slot], (slot, self.writes)
+
+    def kept(self, token: tuple[int, int] | None) -> torch.Tensor | None:
+        """The ``Q`` written under ``token`` (from :meth:`keep`) if it is still there, else ``None``."""
+        if token is None:
+            return None
+        slot, stamp = token
+        return self.slots[slot] if slot < len(self.stamps) and self.stamps[slot] == stamp else None
 
     def buffer(self, name: str, shape: tuple[int, ...], dtype: torch.dtype) -> torch.Tensor:
         buf = self.buffers.get(name)
@@ -88,16 +125,18 @@ class _Workspace:
         return buf
 
 
-def _exp_bilinear(left: torch.Tensor, right: torch.Tensor, workspace: _Workspace) -> torch.Tensor:
-    """``Q = exp(left @ right^T)`` ``(P, n, n)`` in the workspace's ``Q`` buffer (valid until the next call)."""
+def _exp_bilinear(left: torch.Tensor, right: torch.Tensor, workspace: _Workspace, out: torch.Tensor | None = None) -> torch.Tensor:
+    """``Q = exp(left @ right^T)`` ``(P, n, n)`` in ``out``, by default the workspace's scratch ``Q``
+    buffer (valid until the next call)."""
     p, n = left.shape[0], left.shape[1]
-    Q = torch.bmm(left, right.mT, out=workspace.buffer("Q", (p, n, n), left.dtype))
+    Q = torch.bmm(left, right.mT, out=workspace.buffer("Q", (p, n, n), left.dtype) if out is None else out)
     return Q.exp_()
 
 
-def _contract_forward(left, right, w_left, w_right, inv_k, workspace: _Workspace):
-    """``quad (P,)``, ``trace (E',)`` of :class:`_ExpBilinearContraction`, and ``Q w_right (P, n)``."""
-    Q = _exp_bilinear(left, right, workspace)
+def _contract_forward(left, right, w_left, w_right, inv_k, workspace: _Workspace, out: torch.Tensor | None = None):
+    """``quad (P,)``, ``trace (E',)`` of :class:`_ExpBilinearContraction`, and ``Q w_right (P, n)``
+    (``Q`` written to ``out`` if given, see :func:`_exp_bilinear`)."""
+    Q = _exp_bilinear(left, right, workspace, out)
     # (P, n); as a row-vector product: batched matrix-vector products with MKL are faster this way
     q_wr = torch.bmm(w_right[:, None, :], Q.mT).squeeze(1)
     quad = (q_wr * w_left).sum(-1)
@@ -110,7 +149,18 @@ def _contract_forward(left, right, w_left, w_right, inv_k, workspace: _Workspace
     return quad, trace, q_wr
 
 
-def _contract_backward(left, right, w_left, w_right, inv_k, q_wr, g_quad, g_trace, workspace: _Workspace, needs):
+def _times_thin(Q: torch.Tensor, Y: torch.Tensor) -> torch.Tensor:
+    """``Q @ Y`` ``(P, n, k)`` for a large ``Q (P, n, n)`` and a thin ``Y (P, n, k)``.
+
+    ``Y`` is copied to a ``(P, k, n)`` layout and handed to ``bmm`` as its transpose: MKL runs that
+    1.4-2.4x faster than the same product with ``Y`` contiguous (measured at (P, n, k) = (10, 300, 8),
+    (21, 400, 11), (55, 300, 13) on an AMD EPYC; ``benchmarks/compare_objective.py``).
+    """
+    return torch.bmm(Q, Y.mT.contiguous().mT)
+
+
+def _contract_backward(left, right, w_left, w_right, inv_k, q_wr, g_quad, g_trace, workspace: _Workspace, needs,
+                       Q: torch.Tensor | None = None):
     """Gradients of :func:`_contract_forward` wrt ``(left, right, w_left, w_right, inv_k)`` (``None`` where not needed).
 
     With ``a = g_quad w_left`` and ``H = Q[:E'] * inv_k``, the gradient wrt the exponent is
@@ -121,15 +171,16 @@ def _contract_backward(left, right, w_left, w_right, inv_k, q_wr, g_quad, g_trac
         G^T @ left  = w_right * (Q^T @ (a * left)) + g_trace * (H^T @ left)
 
     (``Q^T w_left``, for ``w_right``, rides along as an extra column of the second product).
-    ``Q`` is recomputed (one product and one ``exp``) instead of being stored by the forward pass.
+    ``Q``: the forward pass's ``Q`` if it was kept; ``None`` recomputes it (one product and one ``exp``).
     """
-    Q = _exp_bilinear(left, right, workspace)
+    if Q is None:
+        Q = _exp_bilinear(left, right, workspace)
     p, k = left.shape[0], left.shape[2]
     e = inv_k.shape[0] if g_trace is not None else 0
     if g_quad is None:
         g_quad = torch.zeros(p, dtype=Q.dtype)
     a = w_left * g_quad[:, None]  # (P, n)
-    grad_left = a[..., None] * torch.bmm(Q, w_right[..., None] * right)  # (P, n, k)
+    grad_left = a[..., None] * _times_thin(Q, w_right[..., None] * right)  # (P, n, k)
     # Q^T Y computed as (Y^T Q)^T: batched products with a transposed large factor are ~1.5x slower
     q_t_left = torch.bmm(torch.cat([a[..., None] * left, w_left[..., None]], dim=-1).mT, Q).mT  # (P, n, k + 1)
     grad_right = w_right[..., None] * q_t_left[..., :k]
@@ -138,7 +189,7 @@ def _contract_backward(left, right, w_left, w_right, inv_k, q_wr, g_quad, g_trac
     if e > 0:
         H = torch.mul(Q[:e], inv_k, out=workspace.buffer("prod", tuple(inv_k.shape), inv_k.dtype))
         g_tr = g_trace[:, None, None]
-        grad_left[:e] += g_tr * torch.bmm(H, right[:e])
+        grad_left[:e] += g_tr * _times_thin(H, right[:e])
         grad_right[:e] += g_tr * torch.bmm(left[:e].mT, H).mT
         grad_inv = g_tr * Q[:e] if needs[4] else None
     grad_wl = g_quad[:, None] * q_wr if needs[2] else None
@@ -244,13 +295,14 @@ class MomentMatchingGP:
             return _MomentsFunction.apply(m, S, self, mean_only, *self.constants)
         return self._forward(m, S, mean_only, contract=_contract_forward)[0]
 
-    def forward(self, m: torch.Tensor, S: torch.Tensor, mean_only: bool = False):
+    def forward(self, m: torch.Tensor, S: torch.Tensor, mean_only: bool = False, slot: int | None = None):
         """:meth:`predict` without autograd, for callers with their own backward pass.
 
-        Returns ``((M, V, C), saved)``; ``saved`` (thin ``(P, n, d + 2)`` intermediates, nothing of
-        size ``n^2``) is what :meth:`backward` needs.
+        Returns ``((M, V, C), saved)``; ``saved`` (thin ``(P, n, d + 2)`` intermediates) is what
+        :meth:`backward` needs. ``slot``: keep this prediction's ``Q (P, n, n)`` for the backward pass
+        in the workspace's buffer ``slot`` (one per time step of a rollout; see :class:`_Workspace`).
         """
-        return self._forward(m, S, mean_only, contract=_contract_forward)
+        return self._forward(m, S, mean_only, contract=_contract_forward, slot=slot)
 
     def backward(self, saved, gM: torch.Tensor, gV: torch.Tensor, gC: torch.Tensor, mean_only: bool, needs):
         """Gradients wrt ``(m, S, *self.constants)`` of a loss with gradients ``gM (E,)``,
@@ -258,9 +310,10 @@ class MomentMatchingGP:
         ``needs``: ``2 + len(self.constants)`` booleans; ``None`` is returned where ``False``."""
         return self._backward(saved, gM, gV, gC, mean_only, needs)
 
-    def _forward(self, m, S, mean_only, contract):
+    def _forward(self, m, S, mean_only, contract, slot: int | None = None):
         """The moment-matching arithmetic; ``contract=None`` uses the autograd Function for the
-        exp-contraction (autograd reference path), otherwise the plain forward.
+        exp-contraction (autograd reference path), otherwise the plain forward (``Q`` kept in the
+        workspace's buffer ``slot`` if given and within its memory cap).
         Returns ``((M, V, C), intermediates for _backward)``."""
         e, p = self.num_outputs, self.num_pairs
 
@@ -298,8 +351,13 @@ class MomentMatchingGP:
             quad, trace = _ExpBilinearContraction.apply(left, right, self.beta_a, self.beta_b, inv_k, self.workspace)
             saved = None
         else:
-            quad, trace, q_wr = contract(left, right, self.beta_a, self.beta_b, inv_k, self.workspace)
-            saved = (m, S, b_inv, W, Z, ZW, q, lb, lbt, left, right, inv_k, q_wr, M)
+            n = left.shape[1]
+            kept = None if slot is None else self.workspace.keep(slot, (p, n, n), left.dtype)
+            if kept is None:
+                quad, trace, q_wr = contract(left, right, self.beta_a, self.beta_b, inv_k, self.workspace)
+            else:
+                quad, trace, q_wr = contract(left, right, self.beta_a, self.beta_b, inv_k, self.workspace, out=kept[0])
+            saved = (m, S, b_inv, W, Z, ZW, q, lb, lbt, left, right, inv_k, q_wr, None if kept is None else kept[1], M)
         V = quad[self.full].view(e, e) - torch.outer(M, M)
         if not mean_only:
             V.diagonal().add_(self.alpha2 - trace)
@@ -307,7 +365,7 @@ class MomentMatchingGP:
 
     def _backward(self, saved, gM, gV, gC, mean_only, needs):
         """Hand-derived gradients of ``(M, V, C)`` wrt ``(m, S, *constants)`` (``None`` where not needed)."""
-        m, S, b_inv, W, Z, ZW, q, lb, lbt, left, right, inv_k, q_wr, M = saved
+        m, S, b_inv, W, Z, ZW, q, lb, lbt, left, right, inv_k, q_wr, kept, M = saved
         e, p, d = self.num_outputs, self.num_pairs, self.input_dim
         need_c = dict(zip(_CONSTANTS, needs[2:]))
         # V = quad[full] - M M^T + diag(alpha2 - trace)
@@ -317,6 +375,7 @@ class MomentMatchingGP:
         grad_left, grad_right, g_beta_a, g_beta_b, g_inv_k = _contract_backward(
             left, right, self.beta_a, self.beta_b, inv_k, q_wr, g_quad, g_trace, self.workspace,
             (True, True, need_c["beta_a"], need_c["beta_b"], need_c["inv_k"] and not mean_only),
+            Q=self.workspace.kept(kept),
         )
         # left = [2 Z_a T, u, 1], right = [Z_b, 1, v];  [u; v] = log_k[pair_outputs] + zwz[E:] - [hl_p; 0]
         g_uv = torch.cat([grad_left[..., d], grad_right[..., d + 1]], dim=0)  # (2P, n)

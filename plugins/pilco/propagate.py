@@ -223,15 +223,16 @@ class FusedStep:
         if torch.is_grad_enabled() and (m0.requires_grad or S0.requires_grad or any(t.requires_grad for t in tensors)):
             return _RolloutFunction.apply(m0, S0, self, horizon, *tensors)
         with torch.inference_mode():
-            means, covs, _ = self.run(m0, S0, horizon)
+            means, covs, _ = self.run(m0, S0, horizon, keep=False)
         return means.clone(), covs.clone()  # ordinary tensors for the caller
 
-    def run(self, m0, S0, horizon):
-        """:meth:`forward` ``horizon`` times: ``(means (H+1, D), covs (H+1, D, D), [saved per step])``."""
+    def run(self, m0, S0, horizon, keep: bool = True):
+        """:meth:`forward` ``horizon`` times: ``(means (H+1, D), covs (H+1, D, D), [saved per step])``.
+        ``keep``: the dynamics GP keeps step ``t``'s ``Q`` in its buffer ``t`` for the backward pass."""
         means, covs, saved = [m0], [S0], []
         m, S = m0, S0
-        for _ in range(horizon):
-            (m, S), saved_step = self.forward(m, S)
+        for t in range(horizon):
+            (m, S), saved_step = self.forward(m, S, slot=t if keep else None)
             means.append(m)
             covs.append(S)
             saved.append(saved_step)
@@ -252,8 +253,8 @@ class FusedStep:
             totals = [g if total is None else (total if g is None else total + g) for total, g in zip(totals, g_policy)]
         return (g_m, g_S, *totals)
 
-    def forward(self, m, S):
-        """``((m', S'), saved)`` without autograd."""
+    def forward(self, m, S, slot: int | None = None):
+        """``((m', S'), saved)`` without autograd (``slot``: see :meth:`MomentMatchingGP.forward`)."""
         d = self.layout.state_dim
         if self.trig_maps is None:
             ma, sa, ct, saved_trig = m, S, None, None
@@ -270,7 +271,7 @@ class FusedStep:
         mj = torch.cat([ma, mu])
         sig = torch.cat([torch.cat([sa, s_au], dim=1), torch.cat([s_au.T, su], dim=1)], dim=0)
         sig_in = sig @ self.p_in_t  # (A + F, q + F)
-        (md, vd, cd), saved_dyn = self.dynamics.forward(self.p_in @ mj, self.p_in @ sig_in, self.mean_only)
+        (md, vd, cd), saved_dyn = self.dynamics.forward(self.p_in @ mj, self.p_in @ sig_in, self.mean_only, slot)
         x_in = sig_in[:d]  # (D, q + F) cov[x, GP input]
         s_xd = x_in @ cd  # (D, D) cov[x, Delta]
         s_next = S + vd + s_xd + s_xd.T
