@@ -243,6 +243,8 @@ def run(
         history = [dict(h) for h in checkpoint.history]
         first_trial = checkpoint.trial + 1
         wall_offset = history[-1]["wall_seconds"] if history else 0.0
+        # params are immutable: the code that ran the trials from here on is a tag of its own
+        tracker.set_tags({f"git_sha.resumed_at_trial_{first_trial}": git_sha()})
 
     total, unit = (prep.max_trials, "trials") if prep.max_trials else (prep.budget_seconds, "s")
     progress.start(f"{config.learner} on {config.task}", total, unit)

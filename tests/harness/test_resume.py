@@ -9,6 +9,7 @@ import pytest
 
 from harness.checkpoint import Checkpoint, load_checkpoint, save_checkpoint
 from harness.errors import CheckpointError
+from harness.provenance import git_sha
 from harness.runner import RunConfig, run
 from tests.harness.trackers import InterruptAt
 from tests.processes import HarnessProcess, run_harness
@@ -36,6 +37,8 @@ def test_resumed_run_equals_uninterrupted_run(learner, options, task_options):
     assert NOT_WALL(resumed.history) == NOT_WALL(reference.history)
     assert resumed.interaction_seconds == reference.interaction_seconds
     assert [s for s, _ in tracker.metrics["eval_cost"]] == [1, 2, 3, 4]
+    # the code the resumed trials ran is recorded (the run's git_sha param is the start's)
+    assert tracker.tags["git_sha.resumed_at_trial_3"] == git_sha()
     if "grow_horizon_below" in options:
         assert [h for _, h in sorted(tracker.metrics["planning_horizon"])][-4:] == [3.0, 6.0, 10.0, 10.0]
 
