@@ -108,6 +108,13 @@ def run_child(root: str, config: str, repeats: int) -> dict:
     return json.loads(proc.stdout.strip().splitlines()[-1])
 
 
+def _commit(root: str) -> str:
+    """The checkout's commit, ``+dirty`` if its code differs from it (``git describe``-like)."""
+    sha = subprocess.run(["git", "-C", root, "rev-parse", "--short", "HEAD"], capture_output=True, text=True).stdout.strip()
+    dirty = subprocess.run(["git", "-C", root, "status", "--porcelain", "--", "harness", "plugins", "tasks"], capture_output=True, text=True).stdout.strip()
+    return (sha or "no git") + ("+dirty" if dirty else "")
+
+
 def main() -> None:
     parser = argparse.ArgumentParser(description=__doc__, formatter_class=argparse.RawDescriptionHelpFormatter)
     parser.add_argument("--before", required=True, help="checkout with the old implementation")
@@ -146,7 +153,8 @@ def main() -> None:
         f"Command: `{command.strip()}`  ",
         f"Date: {time.strftime('%Y-%m-%d %H:%M:%S UTC', time.gmtime())}; load average before/after: "
         f"{load_before[0]:.1f} / {load_after[0]:.1f} (shared 2-CPU machine; prefer CPU time and ratios).  ",
-        f"before = `{sides['before']}`, after = `{sides['after']}`; {args.rounds} rounds x {args.repeats} "
+        f"before = `{sides['before']}` ({_commit(sides['before'])}), after = `{sides['after']}` ({_commit(sides['after'])}); "
+        f"{args.rounds} rounds x {args.repeats} "
         "evaluations per side and configuration, alternating subprocesses, 1 torch thread; medians.",
         "",
         "| dynamics posterior | wall ms before / after | CPU ms before / after | CPU speed-up | aten calls before / after "
