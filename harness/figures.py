@@ -17,6 +17,9 @@ import numpy as np
 
 from harness.statistics import times_with_failures
 
+#: appended to a row label for the runs of that row stopped before their limit (curves, run tables)
+STOPPED_SUFFIX = " (stopped)"
+
 
 def _plt():
     import matplotlib
@@ -143,9 +146,11 @@ def plot_fig5(rows: Sequence[dict[str, Any]], path: Path, task: str) -> Path:
 # ---------------------------------------------------------------------------------------------
 
 
-def hold_on_grid(x: np.ndarray, y: np.ndarray, grid: np.ndarray) -> np.ndarray:
+def hold_on_grid(x: np.ndarray, y: np.ndarray, grid: np.ndarray, hold_after: bool = True) -> np.ndarray:
     """Zero-order hold of hand-over values on ``grid``: the value of the last hand-over at or
-    before each grid point (the policy in hand), NaN before the first, held after the last."""
+    before each grid point (the policy in hand), NaN before the first; after the last hand-over
+    held (a run that ended at its limit or solved) or, with ``hold_after=False``, NaN (a run
+    stopped before its limit: what it would have done next is unknown)."""
     x, y = np.asarray(x, dtype=np.float64), np.asarray(y, dtype=np.float64)
     out = np.full(grid.shape, np.nan)
     if x.size == 0:
@@ -153,6 +158,8 @@ def hold_on_grid(x: np.ndarray, y: np.ndarray, grid: np.ndarray) -> np.ndarray:
     idx = np.searchsorted(x, grid, side="right") - 1
     ok = idx >= 0
     out[ok] = y[idx[ok]]
+    if not hold_after:
+        out[grid > x[-1]] = np.nan
     return out
 
 
@@ -173,12 +180,15 @@ def mean_band(values: np.ndarray, reps: int = 1000, seed: int = 0, confidence: f
     return mean, low, high
 
 
-def curve_table(curves: dict[str, list[dict[str, np.ndarray]]], points: int = 80) -> list[dict[str, Any]]:
+def curve_table(curves: dict[str, list[dict[str, np.ndarray]]], points: int = 80,
+                stopped: frozenset[str] = frozenset()) -> list[dict[str, Any]]:
     """Long table ``learner, interaction_s, runs_evaluated, {success,cost}_{mean,low,high}``.
 
     Per learner, a log-spaced grid from its first to 10 % past its last hand-over; every run is
-    held constant after its last hand-over (a solved run keeps its solving policy). A learner
-    without any evaluation (every run raised before its first hand-over) has no curve.
+    held constant after its last hand-over (a solved run keeps its solving policy), except the
+    runs of the labels in ``stopped`` (runs stopped before their limit), which end there: the
+    mean at a point is over the runs evaluated there (``runs_evaluated``). A learner without any
+    evaluation (every run raised before its first hand-over) has no curve.
     """
     rows: list[dict[str, Any]] = []
     for label, histories in curves.items():
@@ -191,7 +201,8 @@ def curve_table(curves: dict[str, list[dict[str, np.ndarray]]], points: int = 80
         grid = np.unique(np.r_[np.geomspace(max(x_min, 1e-6), max(x_max, x_min, 1e-6), points), 1.1 * x_max])
         stats = {}
         for key, name in (("eval_success_rate", "success"), ("eval_cost", "cost")):
-            values = np.stack([hold_on_grid(h["interaction_seconds"], h[key], grid) for h in histories])
+            values = np.stack([hold_on_grid(h["interaction_seconds"], h[key], grid, hold_after=label not in stopped)
+                               for h in histories])
             stats[name] = mean_band(values)
             evaluated = np.sum(np.isfinite(values), axis=0)
         for j, x in enumerate(grid):
@@ -215,9 +226,12 @@ def plot_curves(rows: Sequence[dict[str, Any]], path: Path, task: str,
             mean = np.array([r[f"{name}_mean"] for r in sub])
             line, = ax.step(x, mean, where="post", label=f"{label} (n={max(r['runs_evaluated'] for r in sub)})")
             ax.fill_between(x, [r[f"{name}_low"] for r in sub], [r[f"{name}_high"] for r in sub], step="post", color=line.get_color(), alpha=0.2)
+            if label.endswith(STOPPED_SUFFIX):
+                line.set_linestyle("--")
             for h in (per_run or {}).get(label, []):
                 if h["interaction_seconds"].size:
-                    ax.step(h["interaction_seconds"], h[key], where="post", color=line.get_color(), lw=0.6, alpha=0.35)
+                    ax.step(h["interaction_seconds"], h[key], where="post", color=line.get_color(), lw=0.6, alpha=0.35,
+                            ls=line.get_linestyle())
     axes[0].set(ylabel="evaluation success rate", ylim=(-0.03, 1.03))
     axes[1].set(ylabel="evaluation cost (sum over the episode)")
     xs = [r["interaction_s"] for r in rows] or [1.0]
@@ -229,7 +243,10 @@ def plot_curves(rows: Sequence[dict[str, Any]], path: Path, task: str,
         axes[0].legend(fontsize=7, loc="upper left")
     else:
         axes[0].text(0.5, 0.5, "no evaluations logged", transform=axes[0].transAxes, ha="center")
-    fig.suptitle(f"{task}: mean over seeds with 95 % bootstrap band, thin lines = single runs (policy in hand held between hand-overs)", fontsize=9)
+    stopped_note = f"; dashed '{STOPPED_SUFFIX.strip()}' = runs stopped before their limit, not counted, ending where they stopped" \
+        if any(label.endswith(STOPPED_SUFFIX) for label in labels) else ""
+    fig.suptitle(f"{task}: mean over seeds with 95 % bootstrap band, thin lines = single runs (policy in hand held between "
+                 f"hand-overs){stopped_note}", fontsize=8 if stopped_note else 9)
     fig.tight_layout()
     fig.savefig(path)
     plt.close(fig)

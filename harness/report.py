@@ -9,9 +9,11 @@ Reads the sweeps' child runs (see :mod:`harness.sweep` for the layout) and write
 * ``fig5.png`` / ``fig5.csv``: interaction time to learn cart-pole, log axis, one bar per learner
   (and literature rows from ``literature_fig5.csv``, each with its source);
 * ``runs_<task>.md`` / ``.csv``: one row per counted run (seed, solved, time to success or the
-  interaction at which it stopped unsolved, trials, wall time, stop reason, run id);
+  interaction at which it stopped unsolved, trials, wall time, stop reason, run id), then the
+  runs stopped before their limit, marked as such and in no statistic;
 * ``curves_<task>.png`` / ``.csv``: evaluation success rate and cost vs interaction seconds
-  (mean with band, and every run as a thin line);
+  (mean with band, and every run as a thin line); runs stopped before their limit get a row
+  ``<label> (stopped)`` of their own, dashed, ending where they stopped;
 * ``prediction_<task>_<row>.png``: for learners that log predicted-vs-realised cost plots
   (PILCO's ``prediction_trial*.png``), the last one of a representative run: the solved run with
   the median time to success (lower median), else the run with the most hand-overs;
@@ -137,6 +139,13 @@ def run_config(params: dict[str, str]) -> dict[str, str]:
     return {k: v for k, v in params.items() if k in _LIMIT_KEYS or k.startswith(("learner.", "task."))}
 
 
+def _latest_total(metrics: dict[str, float], key: str) -> float:
+    """How far a run got in ``key`` (a cumulative count): its ``<key>_total``, logged when a run
+    segment ends, or its last per-trial ``<key>``, whichever is larger. A run resumed after a kill
+    that logged no totals (SIGKILL, a machine's end) has a stale total from an earlier segment."""
+    return max(_metric(metrics, f"{key}_total") or 0.0, _metric(metrics, key) or 0.0)
+
+
 def record_from_run(run, sweep_id: str) -> RunRecord | None:
     """A :class:`RunRecord` from an MLflow ``Run`` (``None`` if it is not a sweep cell)."""
     tags, metrics, params = run.data.tags, run.data.metrics, run.data.params
@@ -152,8 +161,8 @@ def record_from_run(run, sweep_id: str) -> RunRecord | None:
         stop_reason=tags.get("stop_reason", run.info.status.lower()),
         time_to_success=_metric(metrics, "interaction_time_to_success") if solved else None,
         trials_to_success=_metric(metrics, "trials_to_success") if solved else None,
-        interaction_seconds=_metric(metrics, "interaction_seconds_total") or _metric(metrics, "interaction_seconds") or 0.0,
-        wall_seconds=_metric(metrics, "wall_seconds_total") or _metric(metrics, "wall_seconds") or 0.0,
+        interaction_seconds=_latest_total(metrics, "interaction_seconds"),
+        wall_seconds=_latest_total(metrics, "wall_seconds"),
         policy_parameters=_metric(metrics, "policy_parameters"),
         state_dim=int(float(state_dim)) if state_dim not in (None, "") else None,
         error=tags.get(ERROR_TAG, ""),
@@ -399,32 +408,44 @@ def comparison_row(task: str, label: str, runs: Sequence[RunRecord], reps: int =
     }
 
 
-RUNS_FIELDS = ["task", "learner", "seed", "solved", "time_to_success_s", "trials_to_success", "interaction_used_s",
-               "wall_seconds", "stop_reason", "status", "run_id"]
+RUNS_FIELDS = ["task", "learner", "seed", "counted", "solved", "time_to_success_s", "trials_to_success", "interaction_used_s",
+               "episodes", "wall_seconds", "stop_reason", "status", "run_id"]
 
 
-def run_rows(task: str, label: str, runs: Sequence[RunRecord]) -> list[dict[str, Any]]:
-    """One row per counted run; an unsolved run has no time to success (``nan``), only the
-    interaction it used before it stopped."""
+def run_rows(task: str, label: str, runs: Sequence[RunRecord], counted: bool = True) -> list[dict[str, Any]]:
+    """One row per run; an unsolved run has no time to success (``nan``), only the interaction it
+    used before it stopped. ``counted=False``: runs stopped before their limit (KILLED, or RUNNING
+    at the time of the report), listed with the interaction and trials they reached but in no
+    statistic; their label gets :data:`~harness.figures.STOPPED_SUFFIX`."""
+    from harness.figures import STOPPED_SUFFIX
+
     return [{
-        "task": task, "learner": label, "seed": r.seed, "solved": r.solved,
+        "task": task, "learner": label if counted else label + STOPPED_SUFFIX, "seed": r.seed, "counted": counted,
+        "solved": r.solved,
         "time_to_success_s": r.time_to_success if r.solved and r.time_to_success is not None else math.nan,
         "trials_to_success": r.trials_to_success if r.solved and r.trials_to_success is not None else math.nan,
-        "interaction_used_s": r.interaction_seconds, "wall_seconds": r.wall_seconds,
-        "stop_reason": r.stop_reason, "status": r.status, "run_id": r.run_id,
+        "interaction_used_s": r.interaction_seconds, "episodes": r.episodes if r.episodes is not None else math.nan,
+        "wall_seconds": r.wall_seconds,
+        "stop_reason": r.stop_reason if counted else f"stopped before its limit ({r.status})", "status": r.status, "run_id": r.run_id,
     } for r in runs]
 
 
 def runs_markdown(task: str, rows: Sequence[dict[str, Any]]) -> str:
-    lines = [f"## {task}: every counted run", "",
+    lines = [f"## {task}: every run", "",
              "Time to success = interaction seconds before the first solved evaluation; an unsolved run shows "
              "'> X' with X the interaction it used before it stopped (a lower bound, not a value). "
-             "Trials = interaction episodes, initial random ones included. Wall = the run's own wall-clock time.", "",
+             "Trials = interaction episodes, initial random ones included. Wall = the run's own wall-clock time. "
+             "Rows marked *stopped* are runs stopped before their limit (killed, or still running): they are "
+             "in no statistic and their '> X' is only how far they got.", "",
              "| learner | seed | solved | time to success (s) | trials | interaction used (s) | wall (s) | stop | run |",
              "|---|---|---|---|---|---|---|---|---|"]
     for r in rows:
-        time = f"{r['time_to_success_s']:.1f}" if r["solved"] else f"> {r['interaction_used_s']:.1f} (unsolved)"
-        trials = _num(r["trials_to_success"]) if r["solved"] else "–"
+        if r.get("counted", True):
+            time = f"{r['time_to_success_s']:.1f}" if r["solved"] else f"> {r['interaction_used_s']:.1f} (unsolved)"
+            trials = _num(r["trials_to_success"]) if r["solved"] else "–"
+        else:
+            time = f"> {r['interaction_used_s']:.1f} (*stopped*, unsolved so far)"
+            trials = f"– ({_num(r['episodes'])} so far)"
         lines.append(f"| {r['learner']} | {r['seed']} | {'yes' if r['solved'] else 'no'} | {time} | {trials} "
                      f"| {r['interaction_used_s']:.1f} | {r['wall_seconds']:.0f} | {r['stop_reason']} | `{r['run_id'][:8]}` |")
     return "\n".join(lines) + "\n"
@@ -763,8 +784,10 @@ def make_report(
         md.write_text(comparison_markdown(task, rows))
         written += [md, write_csv(out / f"comparison_{task}.csv", rows)]
 
-    for task, by_label in by_task.items():
-        rows = [row for label, runs in by_label.items() for row in run_rows(task, label, runs)]
+    stopped_by_task = groups(data.incomplete)
+    for task in dict.fromkeys([*by_task, *stopped_by_task]):
+        rows = [row for label, runs in by_task.get(task, {}).items() for row in run_rows(task, label, runs)]
+        rows += [row for label, runs in stopped_by_task.get(task, {}).items() for row in run_rows(task, label, runs, counted=False)]
         (out / f"runs_{task}.md").write_text(runs_markdown(task, rows))
         written += [out / f"runs_{task}.md", write_csv(out / f"runs_{task}.csv", rows, RUNS_FIELDS)]
 
@@ -792,9 +815,12 @@ def make_report(
     fig5_rows = figures.fig5_data(by_task.get(fig5_task, {}), lit)
     written += [write_csv(out / "fig5.csv", fig5_rows), figures.plot_fig5(fig5_rows, out / "fig5.png", fig5_task)]
 
-    for task, by_label in by_task.items():
-        curves = {label: [history(client, r.run_id) for r in runs] for label, runs in by_label.items()}
-        table = figures.curve_table(curves)
+    for task in dict.fromkeys([*by_task, *stopped_by_task]):
+        curves = {label: [history(client, r.run_id) for r in runs] for label, runs in by_task.get(task, {}).items()}
+        stopped = {label + figures.STOPPED_SUFFIX: [history(client, r.run_id) for r in runs]
+                   for label, runs in stopped_by_task.get(task, {}).items()}
+        curves.update(stopped)
+        table = figures.curve_table(curves, stopped=frozenset(stopped))
         written += [write_csv(out / f"curves_{task}.csv", table), figures.plot_curves(table, out / f"curves_{task}.png", task, curves)]
 
     (out / "sweeps.md").write_text(notes_markdown(data))

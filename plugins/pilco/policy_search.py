@@ -54,7 +54,8 @@ RESTART_SHRINK = 0.1
 MAX_RESTARTS = 20
 
 
-def optimise_policy(objective: PolicyObjective, max_iterations: int = 150, max_evaluations: int = 300) -> PolicySearchResult:
+def optimise_policy(objective: PolicyObjective, max_iterations: int = 150, max_evaluations: int = 300,
+                    memory: int = 10) -> PolicySearchResult:
     """Minimise J(theta) from the controller's current parameters; leaves the best in the controller.
 
     L-BFGS-B over ``z = theta / scale``. scipy's first step has unit length in ``z``; where that
@@ -95,7 +96,8 @@ def optimise_policy(objective: PolicyObjective, max_iterations: int = 150, max_e
                 best["theta"] / scale,
                 jac=True,
                 method="L-BFGS-B",
-                options={"maxiter": int(max_iterations) - iterations, "maxfun": int(max_evaluations) - (counts["evaluations"] - 1)},
+                options={"maxiter": int(max_iterations) - iterations, "maxfun": int(max_evaluations) - (counts["evaluations"] - 1),
+                         "maxcor": int(memory)},
             )
             iterations += int(res.nit)
             message = str(res.message)

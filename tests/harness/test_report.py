@@ -100,6 +100,56 @@ def test_run_rows_give_unsolved_runs_a_lower_bound_not_a_value():
     assert "| pilco | 1 | no | > 60.0 (unsolved) | – | 60.0 |" in md
 
 
+def test_stopped_runs_are_listed_as_stopped_and_in_no_statistic():
+    stopped = _record(2, False, interaction=57.0, status="KILLED")
+    stopped.episodes = 19.0
+    rows = run_rows("cartpole", "pilco", [_record(0, True, 15.0, 4.0)]) + run_rows("cartpole", "pilco", [stopped], counted=False)
+    assert [r["counted"] for r in rows] == [True, False] and rows[1]["learner"] == "pilco (stopped)"
+    md = runs_markdown("cartpole", rows)
+    assert "| pilco (stopped) | 2 | no | > 57.0 (*stopped*, unsolved so far) | – (19 so far) | 57.0 |" in md
+    assert "stopped before its limit (KILLED)" in md
+
+
+def test_a_stale_total_of_an_earlier_run_segment_does_not_hide_later_trials():
+    from types import SimpleNamespace
+
+    from harness.report import record_from_run
+
+    def fake_run(metrics):
+        info = SimpleNamespace(run_id="r", status="KILLED", start_time=0)
+        data = SimpleNamespace(tags={"learner": "pilco", "task": "cartpole", "seed": "0"}, metrics=metrics, params={})
+        return SimpleNamespace(info=info, data=data)
+
+    # killed at 60 s (totals logged), resumed, then lost at 114 s without logging totals
+    stale = fake_run({"interaction_seconds_total": 60.0, "interaction_seconds": 114.0, "wall_seconds_total": 4312.0,
+                      "wall_seconds": 14826.0})
+    record = record_from_run(stale, "s")
+    assert (record.interaction_seconds, record.wall_seconds) == (114.0, 14826.0)
+    # a finished run's totals include what came after its last hand-over
+    finished = record_from_run(fake_run({"interaction_seconds_total": 44.0, "interaction_seconds": 40.0}), "s")
+    assert finished.interaction_seconds == 44.0
+
+
+def test_curves_hold_finished_runs_and_end_stopped_runs_where_they_stopped():
+    from harness.figures import curve_table, hold_on_grid
+
+    grid = np.array([1.0, 2.0, 3.0, 4.0])
+    held = hold_on_grid(np.array([1.5, 2.5]), np.array([0.1, 0.9]), grid)
+    ended = hold_on_grid(np.array([1.5, 2.5]), np.array([0.1, 0.9]), grid, hold_after=False)
+    assert np.allclose(held, [np.nan, 0.1, 0.9, 0.9], equal_nan=True)
+    assert np.allclose(ended, [np.nan, 0.1, np.nan, np.nan], equal_nan=True)
+    run = lambda x, s: {"interaction_seconds": np.array(x), "eval_success_rate": np.array(s), "eval_cost": np.array(s)}  # noqa: E731
+    histories = [run([1.0, 2.0], [0.0, 1.0]), run([1.0, 4.0], [0.0, 0.0])]
+    table = curve_table({"pilco": histories, "pilco (stopped)": histories}, points=5, stopped=frozenset({"pilco (stopped)"}))
+    last = {r["learner"]: r for r in table if r["interaction_s"] == max(t["interaction_s"] for t in table if t["learner"] == r["learner"])}
+    # at 4.4 s (10 % past the last hand-over) both finished runs are held (mean 0.5); the stopped
+    # ones ended at 2 s and 4 s, so none is evaluated there, and at ~2.8 s only the second one
+    assert last["pilco"]["runs_evaluated"] == 2 and last["pilco"]["success_mean"] == 0.5
+    assert last["pilco (stopped)"]["runs_evaluated"] == 0 and math.isnan(last["pilco (stopped)"]["success_mean"])
+    at3 = {r["learner"]: r for r in table if 2.0 < r["interaction_s"] < 4.0}
+    assert at3["pilco"]["runs_evaluated"] == 2 and at3["pilco (stopped)"]["runs_evaluated"] == 1
+
+
 def test_representative_run_is_the_lower_median_solved_run_else_the_longest():
     runs = [_record(0, True, 30.0, 7.0), _record(1, True, 10.0, 3.0), _record(2, True, 20.0, 5.0), _record(3, True, 40.0, 9.0),
             _record(4, False, interaction=60.0)]
