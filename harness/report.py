@@ -17,6 +17,8 @@ Reads the sweeps' child runs (see :mod:`harness.sweep` for the layout) and write
 * ``prediction_<task>_<row>.png``: for learners that log predicted-vs-realised cost plots
   (PILCO's ``prediction_trial*.png``), the last one of a representative run: the solved run with
   the median time to success (lower median), else the run with the most hand-overs;
+* ``walltime_<task>.md`` / ``.csv``: where the wall time goes, per row: wall per trial (median,
+  range, last trial) and the shares of GP training, policy search, evaluation and the rest;
 * ``sweeps.md``: which sweeps (ids, commands, store) the files were made from.
 
 Rows are named by learner. Where a learner ran on a task in several sweeps, each sweep's row is
@@ -451,6 +453,63 @@ def runs_markdown(task: str, rows: Sequence[dict[str, Any]]) -> str:
     return "\n".join(lines) + "\n"
 
 
+#: per-trial timings a learner or the runner may log (seconds), as (metric, column) in table order
+WALL_PARTS = (("model_train_seconds", "model_training"), ("policy_opt_seconds", "policy_search"), ("eval_seconds", "evaluation"))
+
+
+def wall_breakdown(series: Sequence[dict[str, dict[int, float]]]) -> dict[str, Any]:
+    """Where the wall time of some runs went, per trial.
+
+    ``series``: per run, ``metric -> {step: value}`` for ``wall_seconds`` (cumulative) and the
+    :data:`WALL_PARTS`. A trial's wall time is the increase of ``wall_seconds`` over the previous
+    trial (the first trial's includes the set-up and initial rollouts). Returns the number of
+    trials, the median and range of the per-trial wall time, the median wall time of the runs'
+    last trial, the total, and each part's share of the total (``nan`` where no run logs it;
+    ``other`` = the rest: rollouts, logging, checkpoints)."""
+    walls, last, total, parts = [], [], 0.0, {column: 0.0 for _, column in WALL_PARTS}
+    logged = {column: False for _, column in WALL_PARTS}
+    for metrics in series:
+        cumulative = metrics.get("wall_seconds", {})
+        steps = sorted(cumulative)
+        per_trial = np.diff([0.0] + [cumulative[s] for s in steps])
+        if per_trial.size:
+            walls += per_trial.tolist()
+            last.append(float(per_trial[-1]))
+            total += float(per_trial.sum())
+        for key, column in WALL_PARTS:
+            values = [metrics.get(key, {}).get(s) for s in steps]
+            values = [v for v in values if v is not None and math.isfinite(v)]
+            if values:
+                logged[column] = True
+                parts[column] += float(sum(values))
+    wall = _range(walls)
+    row: dict[str, Any] = {"trials": len(walls), "wall_per_trial_median_s": wall[0], "wall_per_trial_min_s": wall[1],
+                           "wall_per_trial_max_s": wall[2], "last_trial_wall_median_s": _range(last)[0], "total_wall_s": total}
+    for _, column in WALL_PARTS:
+        row[f"share_{column}"] = parts[column] / total if logged[column] and total > 0 else math.nan
+    accounted = sum(parts.values())
+    row["share_other"] = (total - accounted) / total if total > 0 else math.nan
+    return row
+
+
+def walltime_markdown(task: str, rows: Sequence[dict[str, Any]]) -> str:
+    pct = lambda v: "–" if math.isnan(v) else f"{100 * v:.0f} %"  # noqa: E731
+    lines = [f"## {task}: where the wall time goes", "",
+             "Per trial = one hand-over: the learner's work for it (PILCO: GP training, policy search), the harness's "
+             "evaluation episodes, the trial's rollout and the logging. Wall per trial grows with the data, so the "
+             "last trial's is given too. Shares are of the total wall time of all trials of the row's runs; '–' = not "
+             "logged by that learner (or by runs made before `eval_seconds` was logged, whose evaluation is then in "
+             "'other'). Machine: shared, 2 cores, one torch thread per run; wall times are upper bounds.", "",
+             "| learner | runs | trials | wall per trial, median [range] (s) | last trial (s, median) | total (h) "
+             "| GP training | policy search | evaluation | other |",
+             "|---|---|---|---|---|---|---|---|---|---|"]
+    for r in rows:
+        lines.append(f"| {r['learner']} | {r['runs']} | {r['trials']} | {_fmt_range(r['wall_per_trial_median_s'], r['wall_per_trial_min_s'], r['wall_per_trial_max_s'])} "
+                     f"| {_num(r['last_trial_wall_median_s'])} | {r['total_wall_s'] / 3600:.2f} | {pct(r['share_model_training'])} "
+                     f"| {pct(r['share_policy_search'])} | {pct(r['share_evaluation'])} | {pct(r['share_other'])} |")
+    return "\n".join(lines) + "\n"
+
+
 def representative_run(runs: Sequence[RunRecord]) -> RunRecord | None:
     """The solved run with the median time to success (lower median), else the longest run."""
     solved = sorted((r for r in runs if r.solved and r.time_to_success is not None), key=lambda r: (r.time_to_success, r.seed))
@@ -823,6 +882,15 @@ def make_report(
         table = figures.curve_table(curves, stopped=frozenset(stopped))
         written += [write_csv(out / f"curves_{task}.csv", table), figures.plot_curves(table, out / f"curves_{task}.png", task, curves)]
 
+    for task in dict.fromkeys([*by_task, *stopped_by_task]):
+        rows = []
+        for runs_of, suffix in ((by_task.get(task, {}), ""), (stopped_by_task.get(task, {}), figures.STOPPED_SUFFIX)):
+            for label, runs in runs_of.items():
+                series = [metric_series(client, r.run_id, ("wall_seconds", *(key for key, _ in WALL_PARTS))) for r in runs]
+                rows.append({"task": task, "learner": label + suffix, "runs": len(runs), **wall_breakdown(series)})
+        (out / f"walltime_{task}.md").write_text(walltime_markdown(task, rows))
+        written += [out / f"walltime_{task}.md", write_csv(out / f"walltime_{task}.csv", rows)]
+
     (out / "sweeps.md").write_text(notes_markdown(data))
     written.append(out / "sweeps.md")
 
@@ -838,11 +906,14 @@ def make_report(
     return written
 
 
+def metric_series(client, run_id: str, keys: Sequence[str]) -> dict[str, dict[int, float]]:
+    """``key -> {step: value}`` of a run's metric histories (empty where a key was never logged)."""
+    return {key: {m.step: m.value for m in client.get_metric_history(run_id, key)} for key in keys}
+
+
 def history(client, run_id: str) -> dict[str, np.ndarray]:
     """Per hand-over: ``interaction_seconds``, ``eval_success_rate``, ``eval_cost`` aligned on the step."""
-    series = {}
-    for key in ("interaction_seconds", "eval_success_rate", "eval_cost"):
-        series[key] = {m.step: m.value for m in client.get_metric_history(run_id, key)}
+    series = metric_series(client, run_id, ("interaction_seconds", "eval_success_rate", "eval_cost"))
     steps = sorted(set(series["interaction_seconds"]) & set(series["eval_success_rate"]) & set(series["eval_cost"]))
     return {key: np.array([series[key][s] for s in steps], dtype=np.float64) for key in series}
 

@@ -256,7 +256,9 @@ def run(
     try:
         try:
             for trial, policy in enumerate(generator, start=first_trial):
+                eval_start = time.perf_counter()
                 result = evaluator(policy)
+                eval_seconds = time.perf_counter() - eval_start
                 record: dict[str, Any] = {
                     "trial": trial,
                     "interaction_seconds": interaction.seconds,
@@ -264,6 +266,7 @@ def run(
                     "eval_success_rate": result.success_rate,
                     "eval_cost": result.mean_cost,
                     "wall_seconds": time.perf_counter() - start,
+                    "eval_seconds": eval_seconds,
                 }
                 record.update({f"eval_{k}": v for k, v in result.mean_extra.items()})
                 record.update(learner.metrics)

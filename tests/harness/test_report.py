@@ -130,6 +130,25 @@ def test_a_stale_total_of_an_earlier_run_segment_does_not_hide_later_trials():
     assert finished.interaction_seconds == 44.0
 
 
+def test_wall_time_is_split_per_trial_into_the_logged_parts_and_the_rest():
+    from harness.report import wall_breakdown, walltime_markdown
+
+    # run A: trials of 10, 20, 30 s (cumulative 10, 30, 60); run B: one trial of 40 s, no evaluation timing
+    a = {"wall_seconds": {1: 10.0, 2: 30.0, 3: 60.0}, "model_train_seconds": {1: 1.0, 2: 2.0, 3: 3.0},
+         "policy_opt_seconds": {1: 5.0, 2: 10.0, 3: 20.0}, "eval_seconds": {1: 1.0, 2: 1.0, 3: 1.0}}
+    b = {"wall_seconds": {1: 40.0}, "model_train_seconds": {1: 4.0}, "policy_opt_seconds": {1: 30.0}}
+    row = wall_breakdown([a, b])
+    assert row["trials"] == 4 and row["total_wall_s"] == 100.0
+    assert (row["wall_per_trial_median_s"], row["wall_per_trial_min_s"], row["wall_per_trial_max_s"]) == (25.0, 10.0, 40.0)
+    assert row["last_trial_wall_median_s"] == 35.0  # median of 30 (A's last) and 40 (B's only)
+    assert (row["share_model_training"], row["share_policy_search"], row["share_evaluation"]) == (0.10, 0.65, 0.03)
+    assert row["share_other"] == pytest.approx(0.22)
+    none = wall_breakdown([{"wall_seconds": {1: 5.0}}])
+    assert math.isnan(none["share_policy_search"]) and none["share_other"] == 1.0
+    md = walltime_markdown("cartpole", [{"task": "cartpole", "learner": "pilco", "runs": 2, **row}])
+    assert "| pilco | 2 | 4 | 25 [10–40] | 35 | 0.03 | 10 % | 65 % | 3 % | 22 % |" in md
+
+
 def test_curves_hold_finished_runs_and_end_stopped_runs_where_they_stopped():
     from harness.figures import curve_table, hold_on_grid
 

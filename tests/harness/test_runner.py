@@ -98,13 +98,16 @@ def test_learner_metrics_are_logged_per_trial(toy_plugins):
     tracker = MemoryTracker()
     runner.run(RunConfig("bad-then-good", "toy-reach", max_trials=10), tracker=tracker)
     assert tracker.metrics["J_after"] == [(1, 1.0), (2, 1.0)]
+    # where the wall time goes: the harness times each trial's evaluation
+    assert [step for step, _ in tracker.metrics["eval_seconds"]] == [step for step, _ in tracker.metrics["wall_seconds"]]
+    assert all(0.0 < v < tracker.metrics["wall_seconds"][-1][1] for _, v in tracker.metrics["eval_seconds"])
     assert tracker.params["learner.bad_trials"] == "2"
 
 
 def test_same_seed_same_history(toy_plugins):
     a = runner.run(RunConfig("bad-then-good", "toy-reach", seed=11, max_trials=4))
     b = runner.run(RunConfig("bad-then-good", "toy-reach", seed=11, max_trials=4))
-    strip = lambda h: [{k: v for k, v in r.items() if k != "wall_seconds"} for r in h]
+    strip = lambda h: [{k: v for k, v in r.items() if k not in ("wall_seconds", "eval_seconds")} for r in h]
     assert strip(a.history) == strip(b.history)
 
 
