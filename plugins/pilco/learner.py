@@ -200,6 +200,10 @@ class Pilco(Learner):
         Option("sparse_threshold", int, None, "FITC above this many data points (default: task preset)", low=1),
         Option("num_pseudo", int, None, "FITC pseudo-inputs (default: the sparse threshold)", low=1),
         Option("gp_max_evals", int, 300, "GP hyperparameter L-BFGS evaluations per trial", low=0),
+        Option("gp_fitc_evals", int, 100, "FITC pseudo-input L-BFGS evaluations per trial (3x the first time; "
+               "the reference allows 500 line searches)", low=0),
+        Option("gp_hyper_subset", int, None, "when sparse, at most this many random data points train the GP "
+               "hyperparameters (default: the sparse threshold; the reference uses all points)", low=1),
         Option("gp_restarts", int, 0, "extra GP training runs from perturbed starts (best kept)", low=0),
         Option("policy_max_iterations", int, None, "L-BFGS iterations (~line searches) per policy search (default: task preset, 150)", low=1),
         Option("policy_max_evaluations", int, None, "J+dJ evaluations per policy search (default: task preset, 300; unicycle 150)", low=1),
@@ -283,7 +287,8 @@ class Pilco(Learner):
         torch.set_num_threads(self.options["threads"])
         spec, o = self.spec, self.options
         workdir = Path(tempfile.mkdtemp(prefix="pilco-"))
-        model = GPModel(sparse_threshold=self.preset.sparse_threshold, num_pseudo=self.num_pseudo, max_evals_full=o["gp_max_evals"])
+        model = GPModel(sparse_threshold=self.preset.sparse_threshold, num_pseudo=self.num_pseudo, max_evals_full=o["gp_max_evals"],
+                        max_evals_fitc=o["gp_fitc_evals"], hyper_subset=o["gp_hyper_subset"])
         controller = self._new_controller(torch.Generator().manual_seed(self.seed))
         resumed = self._resume_state
         try:
