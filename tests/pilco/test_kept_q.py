@@ -38,17 +38,22 @@ def test_kept_q_gives_the_recomputed_gradient() -> None:
 
 def test_kept_q_is_used(monkeypatch) -> None:
     """Not vacuous: with every step kept, the backward pass computes no ``Q`` of its own (a linear
-    policy: the dynamics GP is the only moment matching); with none kept, once per step."""
+    policy: the dynamics GP is the only moment matching); with none kept, once per step and block
+    of output pairs."""
     obj = _objective("linear-sin")
-    calls: list[bool] = []  # per exp-bilinear: written to a kept buffer?
+    calls: list[bool] = []  # per exp-bilinear (one block of pairs): written into a kept buffer?
     original = moments._exp_bilinear
 
-    def counting(left, right, workspace, out=None):
-        calls.append(out is not None)
-        return original(left, right, workspace, out)
+    def counting(left, right, out):
+        kept = {slot.untyped_storage().data_ptr() for slot in obj.dynamics.workspace.slots}
+        calls.append(out.untyped_storage().data_ptr() in kept)
+        return original(left, right, out)
 
     monkeypatch.setattr(moments, "_exp_bilinear", counting)
-    for keep_bytes, forward, backward in ((1 << 40, [True] * obj.horizon, []), (0, [False] * obj.horizon, [False] * obj.horizon)):
+    gp = obj.dynamics
+    blocks = len(moments._pair_blocks(gp.num_pairs, gp.posterior.inputs.shape[0], 8))
+    per_rollout = blocks * obj.horizon
+    for keep_bytes, forward, backward in ((1 << 40, [True] * per_rollout, []), (0, [False] * per_rollout, [False] * per_rollout)):
         obj.dynamics.workspace = moments._Workspace(keep_bytes)
         calls.clear()
         obj.set_flat(obj.get_flat())
@@ -57,6 +62,23 @@ def test_kept_q_is_used(monkeypatch) -> None:
         calls.clear()
         torch.autograd.grad(J, obj.params)
         assert calls == backward
+
+
+def test_contraction_blocks_cover_the_pairs_within_the_byte_budget(monkeypatch) -> None:
+    """Blocks of output pairs tile 0..P in order, each within BLOCK_BYTES (one pair at least); J and dJ
+    do not depend on the blocking (one block for all pairs vs one pair per block) beyond round-off."""
+    monkeypatch.setattr(moments, "BLOCK_BYTES", 3 * 100 * 100 * 8)
+    assert moments._pair_blocks(7, 100, 8) == [(0, 3), (3, 6), (6, 7)]
+    assert moments._pair_blocks(2, 1000, 8) == [(0, 1), (1, 2)]  # larger than the budget: one pair each
+    obj = _objective("linear-sin")
+    theta = obj.get_flat()
+    monkeypatch.setattr(moments, "BLOCK_BYTES", 1 << 40)
+    J_one, g_one = obj(theta)
+    monkeypatch.setattr(moments, "BLOCK_BYTES", 1)
+    J_each, g_each = obj(theta)
+    assert moments._pair_blocks(obj.dynamics.num_pairs, 10, 8) == [(i, i + 1) for i in range(obj.dynamics.num_pairs)]
+    assert abs(J_one - J_each) <= 1e-12 * abs(J_one)
+    np.testing.assert_allclose(g_each, g_one, rtol=1e-10, atol=1e-12 * np.abs(g_one).max())
 
 
 def test_overwritten_kept_q_is_recomputed() -> None:
