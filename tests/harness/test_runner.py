@@ -155,3 +155,13 @@ def test_conformance_detects_a_learner_that_ignores_the_budget():
 
     with pytest.raises(AssertionError):
         check_learner(Swallower, toy.ToyReach())
+
+
+def test_progress_line_says_where_the_trials_wall_time_went():
+    from harness.progress import format_record
+
+    record = {"trial": 3, "max_trials": 10, "interaction_seconds": 12.0, "eval_success_rate": 0.3, "eval_cost": 31.2,
+              "J_after": 25.1, "wall_seconds": 42.4}
+    assert format_record(record) == "trial 3/10 | 12.0 s interaction | success 30% | eval cost 31.20 | J 25.10 | wall 42 s"
+    record.update(model_train_seconds=3.2, policy_opt_seconds=30.4, eval_seconds=1.6)
+    assert format_record(record).endswith("| wall 42 s (GP 3 s, policy 30 s, eval 2 s)")
