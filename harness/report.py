@@ -230,6 +230,18 @@ def _option_defaults(learner: str, task: str) -> dict[str, str]:
     return defaults
 
 
+def bench_command(config: dict[str, str], defaults: dict[str, str], seeds: str) -> str:
+    """The `harness bench` command behind a bench group: its limits and one ``--set`` per option
+    that differs from the installed default (``defaults``, params as strings; an option of a
+    plugin not installed here is written out whatever its value), for the seeds ``seeds``."""
+    limits = "".join(f" --{k.replace('_', '-')} {config[k]}" for k in ("max_trials", "budget_seconds")
+                     if config.get(k) not in (None, "None"))
+    sets = "".join(f" --set {k}={v}" for k, v in sorted(config.items())
+                   if k.startswith(("learner.", "task.")) and defaults.get(k) != v)
+    return (f"harness bench --learner {config.get('learner')} --task {config.get('task')} --seed S{limits}"
+            f" --eval-episodes {config.get('eval_episodes')}{sets}  (S = {seeds})")
+
+
 def _bench_groups(client) -> list[tuple[SweepInfo, list]]:
     """`harness bench` runs (outside sweeps), grouped by configuration into pseudo-sweeps
     ``bench-<hash>``: same learner, task, limits and resolved options; seeds vary."""
@@ -249,9 +261,7 @@ def _bench_groups(client) -> list[tuple[SweepInfo, list]]:
     for group_id, runs in grouped.items():
         c = config_of[group_id]
         seeds = sorted({int(r.data.tags["seed"]) for r in runs if r.data.tags.get("seed", "").isdigit()})
-        limits = "".join(f" --{k.replace('_', '-')} {c[k]}" for k in ("max_trials", "budget_seconds") if c.get(k) not in (None, "None"))
-        command = (f"harness bench --learner {c.get('learner')} --task {c.get('task')} --seed S{limits}"
-                   f" --eval-episodes {c.get('eval_episodes')}  (S = {format_seeds(seeds)}; resolved options in each run's params)")
+        command = bench_command(c, _option_defaults(c.get("learner", ""), c.get("task", "")), format_seeds(seeds))
         params = {"learners": c.get("learner", ""), "tasks": c.get("task", ""), "seeds": format_seeds(seeds), "command": command}
         out.append((SweepInfo(group_id, "", params, "bench runs"), runs))
     return out
@@ -301,21 +311,24 @@ def select_run(records: Sequence[RunRecord]) -> RunRecord:
 
 
 #: at most this many differing settings in a row label; more, and the label is ``learner@<sweep id>``
-LABEL_SETTINGS = 3
+LABEL_SETTINGS = 4
 
 
 def _label(records: Sequence[RunRecord]) -> None:
     """Row label = learner. Where a learner-task pair is in several sweeps, each sweep's row is the
     learner with the settings its runs differ in, e.g. ``pilco [horizon=30]`` beside
-    ``pilco [horizon=40]``, with ``@<sweep id>`` added where settings do not tell sweeps apart."""
+    ``pilco [horizon=40]``, with ``@<sweep id>`` added where settings do not tell sweeps apart. A
+    setting a sweep did not record (an option added after it ran) counts at the installed default."""
     by_pair: dict[tuple[str, str], dict[str, list[RunRecord]]] = defaultdict(lambda: defaultdict(list))
     for r in records:
         by_pair[(r.learner, r.task)][r.sweep_id].append(r)
-    for (learner, _), by_sweep in by_pair.items():
+    for (learner, task), by_sweep in by_pair.items():
         if len(by_sweep) == 1:
             names = dict.fromkeys(by_sweep, learner)
         else:
-            names = variant_labels(learner, {sweep: _shared_config(rs) for sweep, rs in by_sweep.items()})
+            defaults = _option_defaults(learner, task)
+            configs = {sweep: {**defaults, **_shared_config(rs)} for sweep, rs in by_sweep.items()}
+            names = variant_labels(learner, configs)
         for sweep, rs in by_sweep.items():
             for r in rs:
                 r.label = names[sweep]

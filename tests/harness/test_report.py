@@ -269,14 +269,19 @@ def test_sweeps_of_one_learner_are_told_apart_by_the_settings_they_differ_in():
     assert variant_labels("pilco", {"a": base, "b": dict(base)}) == {"a": "pilco@a", "b": "pilco@b"}
     three = variant_labels("pilco", {"a": base, "b": dict(base), "c": base | {"task.horizon": "30"}})
     assert three == {"a": "pilco [horizon=40]@a", "b": "pilco [horizon=40]@b", "c": "pilco [horizon=30]"}
-    many = {"a": base | {"task.x": "1"}, "b": dict.fromkeys(base, "0") | {"task.x": "2"}}
-    assert variant_labels("pilco", many) == {"a": "pilco@a", "b": "pilco@b"}  # 4 settings differ
+    many = {"a": base | {"task.x": "1", "task.y": "1"}, "b": dict.fromkeys(base, "0") | {"task.x": "2", "task.y": "2"}}
+    assert variant_labels("pilco", many) == {"a": "pilco@a", "b": "pilco@b"}  # 5 settings differ
     both = variant_labels("pilco", {"a": base | {"learner.horizon": "5"}, "b": base | {"task.horizon": "30", "learner.horizon": "9"}})
     assert both == {"a": "pilco [learner.horizon=5, task.horizon=40]", "b": "pilco [learner.horizon=9, task.horizon=30]"}
     # a setting one run of a sweep differs in is not the sweep's: not compared
     mixed = [rec(0, "a", base), rec(1, "a", base | {"task.horizon": "30"}), rec(0, "b", base | {"max_trials": "9"})]
     _label(mixed)
     assert [r.label for r in mixed] == ["pilco [max_trials=15]", "pilco [max_trials=15]", "pilco [max_trials=9]"]
+    # an option one sweep did not record (added after it ran) counts at its default: a sweep with
+    # it set otherwise is told apart by it (pilco's gp_fitc_evals defaults to 100)
+    later = [rec(0, "old", base), rec(0, "new", base | {"learner.gp_fitc_evals": "300"}), rec(0, "same", base | {"learner.gp_fitc_evals": "100"})]
+    _label(later)
+    assert [r.label for r in later] == ["pilco [gp_fitc_evals=100]@old", "pilco [gp_fitc_evals=300]", "pilco [gp_fitc_evals=100]@same"]
     assert file_slug("pilco [horizon=30, max_trials=9]") == "pilco_horizon-30_max_trials-9" and file_slug("pilco@ab12") == "pilco_ab12"
 
     # Table 1 has a row per variant of the learner, the variant named
@@ -424,6 +429,32 @@ def test_bench_group_ignores_options_at_their_default():
     assert bench_group_id({**old, "learner.plan_with_noise": "True"}, defaults) != bench_group_id(old, defaults)
     assert bench_group_id({**old, "max_trials": "40"}, defaults) != bench_group_id(old, defaults)
     assert _option_defaults("no-such-learner", "no-such-task") == {}
+
+
+def test_bench_command_reproduces_the_group_configuration():
+    """The command written for a bench group, parsed back through the CLI's option routing,
+    resolves to the same limits and options (so the group id too): every non-default option
+    appears as --set, no default does."""
+    import shlex
+
+    from harness.options import parse_assignments
+    from harness.report import _option_defaults, bench_command, bench_group_id, run_config
+    from harness.runner import RunConfig, prepare, route_options, run_params
+
+    defaults = _option_defaults("pilco", "double-pendulum")
+    config = {**{k: v for k, v in defaults.items()}, "learner": "pilco", "task": "double-pendulum", "max_trials": "40",
+              "budget_seconds": "None", "eval_episodes": "10", "task.horizon": "60", "learner.gp_fitc_evals": "300"}
+    command = bench_command(config, defaults, "0-2")
+    assert command.endswith("(S = 0-2)") and command.count("--set") == 2
+    assert "--set learner.gp_fitc_evals=300" in command and "--set task.horizon=60" in command
+    argv = shlex.split(command.split("  (S =")[0])
+    sets = [argv[i + 1] for i, a in enumerate(argv) if a == "--set"]
+    to_learner, to_task = route_options("pilco", "double-pendulum", parse_assignments(sets))
+    prep = prepare(RunConfig("pilco", "double-pendulum", 0, to_learner, to_task, int(argv[argv.index("--max-trials") + 1]), None, 10))
+    rebuilt = {"learner": "pilco", "task": "double-pendulum"} | run_config({k: str(v) for k, v in run_params(prep).items()})
+    assert bench_group_id(rebuilt, defaults) == bench_group_id(config, defaults)
+    # a plugin not installed here: its options are written out, whatever their value
+    assert "--set learner.x=1" in bench_command({"learner": "gone", "task": "t", "eval_episodes": "10", "learner.x": "1"}, {}, "0")
 
 
 def test_test_table_marks_runs_stopped_before_their_limit():
