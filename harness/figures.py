@@ -217,8 +217,11 @@ def plot_curves(rows: Sequence[dict[str, Any]], path: Path, task: str,
     with ``per_run`` (label -> run histories, see :func:`harness.report.history`), every run's
     hand-overs as a thin line in the learner's colour."""
     plt = _plt()
-    fig, axes = plt.subplots(1, 2, figsize=(10, 3.8), dpi=120)
     labels = list(dict.fromkeys(r["learner"] for r in rows))
+    # the legend goes under both panels (row labels can be long), one entry per line
+    legend_in = 0.2 * len(labels) + 0.25 if labels else 0.0
+    height = 4.2 + legend_in
+    fig, axes = plt.subplots(1, 2, figsize=(10, height), dpi=120)
     for label in labels:
         sub = [r for r in rows if r["learner"] == label]
         x = np.array([r["interaction_s"] for r in sub])
@@ -240,14 +243,16 @@ def plot_curves(rows: Sequence[dict[str, Any]], path: Path, task: str,
         _plain_log_ticks(ax.xaxis, min(xs), max(xs))
         ax.set_xlabel("interaction [s] (log)")
     if labels:
-        axes[0].legend(fontsize=7, loc="upper left")
+        handles, names = axes[0].get_legend_handles_labels()
+        fig.legend(handles, names, fontsize=7, loc="lower center", ncol=1, frameon=False)
     else:
         axes[0].text(0.5, 0.5, "no evaluations logged", transform=axes[0].transAxes, ha="center")
     stopped_note = f"; dashed '{STOPPED_SUFFIX.strip()}' = runs stopped before their limit, not counted, ending where they stopped" \
         if any(label.endswith(STOPPED_SUFFIX) for label in labels) else ""
-    fig.suptitle(f"{task}: mean over seeds with 95 % bootstrap band, thin lines = single runs (policy in hand held between "
-                 f"hand-overs){stopped_note}", fontsize=8 if stopped_note else 9)
-    fig.tight_layout()
+    title = (f"{task}: mean over seeds with 95 % bootstrap band, thin lines = single runs (policy in hand held between "
+             f"hand-overs){stopped_note}")
+    fig.suptitle(textwrap.fill(title, 140), fontsize=8)
+    fig.tight_layout(rect=(0, legend_in / height, 1, 1))
     fig.savefig(path)
     plt.close(fig)
     return path
