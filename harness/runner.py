@@ -154,6 +154,20 @@ def save_episodes(episodes: tuple[Episode, ...] | list[Episode], path: Path) -> 
     return path
 
 
+def load_episodes(path: Path) -> list[Episode]:
+    """The episodes of a :func:`save_episodes` file, in order (``clipped_actions``/``extra`` are not stored)."""
+    try:
+        data = np.load(path)
+    except OSError as exc:
+        raise FileNotFoundError(f"cannot read episodes file {path}: {exc}") from exc
+    count = sum(1 for key in data.files if key.endswith("_observations"))
+    return [
+        Episode(observations=data[f"ep{i}_observations"], states=data[f"ep{i}_states"], actions=data[f"ep{i}_actions"],
+                costs=data[f"ep{i}_costs"], terminated=bool(data[f"ep{i}_terminated"]))
+        for i in range(count)
+    ]
+
+
 def run_identity(prep: Prepared) -> dict[str, Any]:
     """What must be equal for a checkpoint to be resumed: learner, task, seed, options, limits."""
     cfg = prep.config

@@ -8,6 +8,7 @@ import pytest
 from harness import runner
 from harness.errors import InvalidActionError
 from harness.interaction import Interaction
+from harness.task import Episode
 from harness.runner import RunConfig
 from harness.testing import LearnerConformance, TaskConformance
 from harness.tracking import MemoryTracker
@@ -165,3 +166,23 @@ def test_progress_line_says_where_the_trials_wall_time_went():
     assert format_record(record) == "trial 3/10 | 12.0 s interaction | success 30% | eval cost 31.20 | J 25.10 | wall 42 s"
     record.update(model_train_seconds=3.2, policy_opt_seconds=30.4, eval_seconds=1.6)
     assert format_record(record).endswith("| wall 42 s (GP 3 s, policy 30 s, eval 2 s)")
+
+
+def test_saved_episodes_load_back_equal(tmp_path):
+    rng = np.random.default_rng(0)
+    episodes = [
+        Episode(observations=rng.normal(size=(steps + 1, 3)), states=rng.normal(size=(steps + 1, 3)),
+                actions=rng.normal(size=(steps, 1)), costs=rng.random(steps), terminated=terminated)
+        for steps, terminated in [(5, False), (3, True), (7, False)]
+    ]
+    loaded = runner.load_episodes(runner.save_episodes(episodes, tmp_path / "episodes.npz"))
+    assert len(loaded) == 3
+    for a, b in zip(episodes, loaded):
+        for key in ("observations", "states", "actions", "costs"):
+            np.testing.assert_array_equal(getattr(a, key), getattr(b, key))
+        assert a.terminated == b.terminated
+
+
+def test_loading_a_missing_episodes_file_names_it(tmp_path):
+    with pytest.raises(FileNotFoundError, match="nothing.npz"):
+        runner.load_episodes(tmp_path / "nothing.npz")

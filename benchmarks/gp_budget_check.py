@@ -1,0 +1,208 @@
+"""Which GP training budget gives the better dynamics model: the same data, several budgets.
+
+Usage::
+
+    OMP_NUM_THREADS=1 .venv/bin/python benchmarks/gp_budget_check.py RUN_ID [--train-episodes 20]
+        [--configs 100:400 300:400 100:800 300:800] [--seeds 0] [--policy-trial K] [--episodes 100]
+        [--tracking-uri URI] [--out results/benchmarks]
+
+Takes the recorded episodes of a PILCO run, trains the dynamics GP from scratch on the first
+``--train-episodes`` of them once per budget ``FITC_EVALS:HYPER_SUBSET`` (the learner options
+``gp_fitc_evals`` and ``gp_hyper_subset``; ``all`` trains the hyperparameters on every point, as
+the reference code does) and seed (the random hyperparameter subset and first pseudo-inputs), and
+scores every model on what the run recorded *after* those episodes (the region the later, better
+policies visited):
+
+* **one-step NLPD**: mean negative log predictive density of the held-out state differences
+  (nats per transition, summed over the state dimensions; lower is better);
+* **SMSE**: held-out mean squared error over the variance of the targets, averaged over the state
+  dimensions (0 = perfect, 1 = no better than the mean);
+* **J of a later policy**: the closed-form expected cost (PILCO's moment matching, what the policy
+  search minimises) of the policy the run handed over at ``--policy-trial`` (default: its last),
+  beside that policy's real cost over ``--episodes`` episodes: how far each model misjudges it.
+
+The run's own GP at trial ``--train-episodes`` (trained on the same episodes, but warm-started
+over the trials before, with the run's budget) is scored too. From scratch the first pseudo-input
+optimisation gets 3x its budget (as in a run's first sparse trial). ``--warm-start`` adds, per budget,
+two refits from the run's GP at trial ``K - 1`` (what the run itself does each trial): keeping its
+pseudo-inputs, or drawing fresh ones from the data with the same budget. Writes
+``gp_budget_check_<task>_<run>_seeds<S>[_warm].md`` into ``--out``.
+"""
+
+from __future__ import annotations
+
+import argparse
+import json
+import math
+import sys
+import tempfile
+import time
+from pathlib import Path
+
+import numpy as np
+import torch
+
+ROOT = Path(__file__).resolve().parents[1]
+sys.path.insert(0, str(ROOT))
+
+from harness.discovery import load_learner, load_task  # noqa: E402
+from harness.evaluation import Evaluator  # noqa: E402
+from harness.runner import load_episodes  # noqa: E402
+from harness.testrun import task_options  # noqa: E402
+from harness.tracking import open_client, resolve_tracking_uri  # noqa: E402
+from plugins.pilco.gp import GPModel  # noqa: E402
+from plugins.pilco.learner import transitions  # noqa: E402
+from plugins.pilco.objective import PolicyObjective  # noqa: E402
+from plugins.pilco.propagate import StateLayout  # noqa: E402
+
+
+def parse_config(text: str) -> tuple[int, int | None]:
+    """``"300:800"`` -> ``(300, 800)``; ``"100:all"`` -> ``(100, None)`` (every point)."""
+    try:
+        fitc, subset = text.split(":")
+        return int(fitc), None if subset == "all" else int(subset)
+    except ValueError:
+        raise argparse.ArgumentTypeError(f"config {text!r}: expected FITC_EVALS:HYPER_SUBSET, e.g. 300:800 or 100:all") from None
+
+
+def one_step_scores(model: GPModel, x: np.ndarray, y: np.ndarray) -> tuple[float, float]:
+    """Held-out ``(NLPD, SMSE)`` of ``model`` on inputs ``x (m, d)``, targets ``y (m, E)``.
+
+    NLPD: mean over the ``m`` transitions of ``-sum_a log N(y_a | mean_a, var_a + noise_a)`` (nats).
+    SMSE: ``mean_a [ mean_i (y_ia - mean_ia)^2 / var_i(y_ia) ]``.
+    """
+    with torch.no_grad():
+        mean, var = model.predict(torch.as_tensor(x), include_noise=True)
+    mean, var = mean.numpy(), var.numpy()
+    nlpd = 0.5 * (np.log(2 * math.pi * var) + (y - mean) ** 2 / var)
+    smse = ((y - mean) ** 2).mean(0) / y.var(0)
+    return float(nlpd.sum(1).mean()), float(smse.mean())
+
+
+def closed_form_J(model: GPModel, policy, spec, horizon: int, mean_only: bool) -> float:
+    """PILCO's moment-matching ``J = sum_t E[c(x_t)]`` of ``policy`` under ``model``."""
+    objective = PolicyObjective(policy.controller, model.posterior(), policy.layout, spec.cost, spec.init_mean,
+                                spec.init_cov, horizon, mean_only=mean_only)
+    with torch.no_grad():
+        return float(objective.step_costs()[0].sum())
+
+
+def real_J(task, policy, horizon: int, episodes: int) -> tuple[float, float]:
+    """Mean real cost over ``horizon`` steps (a terminated episode holds its last cost) and success rate."""
+    result = Evaluator(task, n_episodes=episodes, seed=200_000)(policy)
+    totals = [ep.costs[:horizon].sum() + (horizon - ep.steps) * ep.costs[-1] * ep.terminated for ep in result.episodes]
+    return float(np.mean(totals)), float(result.success_rate)
+
+
+def main(argv: list[str] | None = None) -> None:
+    parser = argparse.ArgumentParser(description=__doc__.splitlines()[0])
+    parser.add_argument("run_id")
+    parser.add_argument("--train-episodes", type=int, default=20)
+    parser.add_argument("--configs", type=parse_config, nargs="+", default=[(100, 400), (300, 400), (100, 800), (300, 800)])
+    parser.add_argument("--seeds", type=int, nargs="+", default=[0])
+    parser.add_argument("--policy-trial", type=int, default=None)
+    parser.add_argument("--episodes", type=int, default=100)
+    parser.add_argument("--warm-start", action="store_true",
+                        help="also refit from the run's GP at trial K-1 (as the run did), keeping its pseudo-inputs or drawing fresh ones")
+    parser.add_argument("--tracking-uri", default=None)
+    parser.add_argument("--out", type=Path, default=ROOT / "results" / "benchmarks")
+    args = parser.parse_args(argv)
+    torch.set_num_threads(1)
+
+    client = open_client(resolve_tracking_uri(args.tracking_uri))
+    run = client.get_run(args.run_id)
+    params = run.data.params
+    if not params.get("learner", "").startswith("pilco"):
+        sys.exit(f"run {args.run_id} is a {params.get('learner')!r} run; this check needs a PILCO run")
+    task = load_task(params["task"])(**task_options(params))
+    spec = task.spec
+    k = args.train_episodes
+    with tempfile.TemporaryDirectory() as tmp:
+        episodes = load_episodes(Path(client.download_artifacts(args.run_id, "episodes/interaction_episodes.npz", tmp)))
+        if not 1 <= k < len(episodes):
+            sys.exit(f"run {args.run_id} recorded {len(episodes)} episodes; --train-episodes must leave some to test on (1..{len(episodes) - 1})")
+        trials = sorted(int(Path(a.path).stem[len("policy_trial"):]) for a in client.list_artifacts(args.run_id, "policies"))
+        policy_trial = args.policy_trial or max(trials)
+        policy = load_learner(params["learner"]).load_policy(
+            Path(client.download_artifacts(args.run_id, f"policies/policy_trial{policy_trial:03d}.pkl", tmp)))
+        settings = json.loads(Path(client.download_artifacts(args.run_id, "trial001/pilco_settings.json", tmp)).read_text())
+        try:
+            own = torch.load(client.download_artifacts(args.run_id, f"trial{k:03d}/model_trial{k:03d}.pt", tmp), weights_only=False)
+        except Exception:  # noqa: BLE001 - the run may not have reached trial k
+            own = None
+        previous = None
+        if args.warm_start:
+            previous = torch.load(client.download_artifacts(args.run_id, f"trial{k - 1:03d}/model_trial{k - 1:03d}.pt", tmp),
+                                  weights_only=False)
+    layout = StateLayout(spec.state_dim, spec.angle_indices, tuple(settings["model_inputs"]), tuple(settings["policy_inputs"]))
+    x_train, y_train = transitions(episodes[:k], layout)
+    x_test, y_test = transitions(episodes[k:], layout)
+    horizon, mean_only = int(settings["planning_horizon"]), bool(settings["mean_only"])
+    threshold = int(settings["preset"]["sparse_threshold"])
+    num_pseudo = int(settings["num_pseudo"])
+    real, success = real_J(task, policy, horizon, args.episodes)
+    print(f"{len(x_train)} training / {len(x_test)} held-out transitions; policy of trial {policy_trial}: real J {real:.2f}, "
+          f"success {100 * success:.0f} %", flush=True)
+
+    rows = []
+    if own is not None:
+        model = GPModel()
+        model.load_state_dict(own["gp"])
+        budget = f"run's own GP ({params.get('learner.gp_fitc_evals', '?')}:{params.get('learner.gp_hyper_subset', '?')}, warm-started)"
+        rows.append((budget, "", "", *one_step_scores(model, x_test, y_test), closed_form_J(model, policy, spec, horizon, mean_only)))
+    for fitc_evals, subset in args.configs:
+        for seed in args.seeds:
+            model = GPModel(sparse_threshold=threshold, num_pseudo=num_pseudo, max_evals_fitc=fitc_evals,
+                            hyper_subset=len(x_train) if subset is None else subset)
+            start = time.process_time()
+            fit = model.fit(x_train, y_train, seed=seed)
+            cpu = time.process_time() - start
+            nlpd, smse = one_step_scores(model, x_test, y_test)
+            J = closed_form_J(model, policy, spec, horizon, mean_only)
+            label = f"{fitc_evals}:{'all' if subset is None else subset}"
+            rows.append((label, str(seed), f"{cpu:.0f}", nlpd, smse, J))
+            print(f"{label} seed {seed}: fit {cpu:.0f} s CPU ({fit.evaluations} evaluations), NLPD {nlpd:.3f}, SMSE {smse:.4f}, "
+                  f"J {J:.2f}", flush=True)
+            if previous is None:
+                continue
+            warm = GPModel()
+            warm.load_state_dict(previous["gp"])
+            for keep, what in ((True, "its pseudo-inputs"), (False, "fresh pseudo-inputs")):
+                hyp = warm.hyperparameters.clone()
+                if not keep:
+                    hyp.pseudo_inputs = None  # -> a random subset of the data, with the same budget (factor 1)
+                model = GPModel(sparse_threshold=threshold, num_pseudo=num_pseudo, max_evals_fitc=fitc_evals, fitc_first_factor=1,
+                                hyper_subset=len(x_train) if subset is None else subset)
+                start = time.process_time()
+                model.fit(x_train, y_train, warm_start=hyp, seed=seed)
+                cpu = time.process_time() - start
+                nlpd, smse = one_step_scores(model, x_test, y_test)
+                J = closed_form_J(model, policy, spec, horizon, mean_only)
+                rows.append((f"{label} from the run's trial-{k - 1} GP, {what}", str(seed), f"{cpu:.0f}", nlpd, smse, J))
+                print(f"{rows[-1][0]} seed {seed}: fit {cpu:.0f} s CPU, NLPD {nlpd:.3f}, SMSE {smse:.4f}, J {J:.2f}", flush=True)
+
+    command = "python benchmarks/gp_budget_check.py " + " ".join(argv if argv is not None else sys.argv[1:])
+    lines = [
+        f"# GP training budget check: {params['learner']} on {params['task']}, run `{args.run_id}`", "",
+        f"Command: `OMP_NUM_THREADS=1 {command.strip()}`  ",
+        f"Run options: {', '.join(f'{key}={v}' for key, v in sorted(params.items()) if key.startswith(('task.', 'learner.gp_'))) or 'defaults'}.", "",
+        f"Trained on the run's first {k} episodes ({len(x_train)} transitions; FITC with {num_pseudo} pseudo-inputs above "
+        f"{threshold} points), scored on its remaining {len(episodes) - k} episodes ({len(x_test)} transitions). "
+        f"Budget = `gp_fitc_evals:gp_hyper_subset` (pseudo-input evaluations per trial, 3x from scratch : points training the "
+        f"hyperparameters). J: closed-form expected cost over {horizon} steps of the policy handed over at trial "
+        f"{policy_trial}; its **real** cost over {args.episodes} episodes is **{real:.2f}** (success {100 * success:.0f} %). "
+        "Fit time: CPU seconds on one thread.", "",
+        "| budget | seed | fit CPU s | held-out NLPD (nats/transition) | held-out SMSE | J of the later policy | J - real |",
+        "|---|---|---|---|---|---|---|",
+    ]
+    lines += [f"| {label} | {seed} | {cpu} | {nlpd:.3f} | {smse:.4f} | {J:.2f} | {J - real:+.2f} |"
+              for label, seed, cpu, nlpd, smse, J in rows]
+    args.out.mkdir(parents=True, exist_ok=True)
+    out = args.out / f"gp_budget_check_{params['task']}_{args.run_id[:8]}_seeds{'-'.join(map(str, args.seeds))}{'_warm' if args.warm_start else ''}.md"
+    out.write_text("\n".join(lines) + "\n")
+    print("\n".join(lines))
+    print(f"wrote {out}")
+
+
+if __name__ == "__main__":
+    main()
