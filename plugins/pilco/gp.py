@@ -488,6 +488,10 @@ class GPModel:
         fitc_first_factor: see above.
         hyper_subset: at most this many random points train the hyperparameters when sparse
             (default ``sparse_threshold``).
+        refresh_pseudo: draw the pseudo-inputs afresh (a random subset of the current data,
+            budget ``max_evals_fitc``) at every fit instead of continuing from a warm start's;
+            on the double pendulum the carried-over ones model the newer data worse
+            (``results/benchmarks/gp_budget_check_double-pendulum_62916e51_seeds0_warm.md``).
         noise_floor_rel, noise_floor_abs: ``sigma_a >= max(rel * scale(y_a), abs)``.
         curb: add the hypCurb penalty (switch off only for ablations/tests).
         restart_scale: std of the Gaussian perturbation of the log-hyperparameters per restart.
@@ -502,6 +506,7 @@ class GPModel:
         max_evals_fitc: int = 100,
         fitc_first_factor: int = 3,
         hyper_subset: int | None = None,
+        refresh_pseudo: bool = False,
         noise_floor_rel: float = NOISE_FLOOR_REL,
         noise_floor_abs: float = NOISE_FLOOR_ABS,
         curb: bool = True,
@@ -516,6 +521,7 @@ class GPModel:
         self.max_evals_fitc = int(max_evals_fitc)
         self.fitc_first_factor = int(fitc_first_factor)
         self.hyper_subset = int(hyper_subset if hyper_subset is not None else sparse_threshold)
+        self.refresh_pseudo = bool(refresh_pseudo)
         self.noise_floor_rel = float(noise_floor_rel)
         self.noise_floor_abs = float(noise_floor_abs)
         self.curb = bool(curb)
@@ -604,12 +610,13 @@ class GPModel:
         if sparse:
             m = self.num_pseudo
             previous = None if warm_start is None else warm_start.pseudo_inputs
-            if previous is not None and tuple(previous.shape) == (m, dim):
+            if previous is not None and tuple(previous.shape) == (m, dim) and not self.refresh_pseudo:
                 z0 = torch.as_tensor(previous, dtype=DTYPE).detach().clone()
                 fitc_budget = self.max_evals_fitc
             else:
                 z0 = x[torch.randperm(n, generator=gen)[:m]].clone()
-                fitc_budget = self.max_evals_fitc * self.fitc_first_factor
+                first = previous is None or tuple(previous.shape) != (m, dim)
+                fitc_budget = self.max_evals_fitc * (self.fitc_first_factor if first else 1)
             z, fitc_per_output, res = optimise_pseudo_inputs(x, y, best_hyp, z0, fitc_budget, self.fitc_ridge)
             best_hyp.pseudo_inputs = z
             fitc_nll = float(fitc_per_output.sum())

@@ -204,6 +204,8 @@ class Pilco(Learner):
                "the reference allows 500 line searches)", low=0),
         Option("gp_hyper_subset", int, None, "when sparse, at most this many random data points train the GP "
                "hyperparameters (default: the sparse threshold; the reference uses all points)", low=1),
+        Option("gp_refresh_pseudo", bool, False, "draw the FITC pseudo-inputs afresh from the data at every trial "
+               "(default: continue from the previous trial's, as the reference does)"),
         Option("gp_restarts", int, 0, "extra GP training runs from perturbed starts (best kept)", low=0),
         Option("policy_max_iterations", int, None, "L-BFGS iterations (~line searches) per policy search (default: task preset, 150)", low=1),
         Option("policy_max_evaluations", int, None, "J+dJ evaluations per policy search (default: task preset, 300; unicycle 150)", low=1),
@@ -288,7 +290,8 @@ class Pilco(Learner):
         spec, o = self.spec, self.options
         workdir = Path(tempfile.mkdtemp(prefix="pilco-"))
         model = GPModel(sparse_threshold=self.preset.sparse_threshold, num_pseudo=self.num_pseudo, max_evals_full=o["gp_max_evals"],
-                        max_evals_fitc=o["gp_fitc_evals"], hyper_subset=o["gp_hyper_subset"])
+                        max_evals_fitc=o["gp_fitc_evals"], hyper_subset=o["gp_hyper_subset"],
+                        refresh_pseudo=o["gp_refresh_pseudo"])
         controller = self._new_controller(torch.Generator().manual_seed(self.seed))
         resumed = self._resume_state
         try:

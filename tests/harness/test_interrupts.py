@@ -15,15 +15,32 @@ from tests.harness.trackers import AtTrial
 
 @pytest.mark.parametrize("signum", [signal.SIGTERM, signal.SIGINT])
 def test_a_signal_inside_the_block_is_delivered_after_it(signum):
-    terminate_as_interrupt()  # SIGTERM -> KeyboardInterrupt, as in the CLI; SIGINT has Python's default
-    before = signal.getsignal(signum)
-    finished = []
-    with pytest.raises(KeyboardInterrupt):
+    terminate_as_interrupt()  # SIGTERM -> KeyboardInterrupt, as in the CLI
+    # SIGINT: Python's default handler, also when the tests run as a background job (which inherits SIG_IGN)
+    inherited = signal.signal(signal.SIGINT, signal.default_int_handler)
+    try:
+        before = signal.getsignal(signum)
+        finished = []
+        with pytest.raises(KeyboardInterrupt):
+            with held_interrupts():
+                os.kill(os.getpid(), signum)
+                finished.append("after the signal")  # not reached if the signal cut the block short
+        assert finished == ["after the signal"]
+        assert signal.getsignal(signum) is before
+    finally:
+        signal.signal(signal.SIGINT, inherited)
+
+
+def test_an_ignored_sigint_stays_ignored_inside_the_block():
+    inherited = signal.signal(signal.SIGINT, signal.SIG_IGN)  # e.g. a background job started by a shell
+    try:
+        finished = []
         with held_interrupts():
-            os.kill(os.getpid(), signum)
-            finished.append("after the signal")  # not reached if the signal cut the block short
-    assert finished == ["after the signal"]
-    assert signal.getsignal(signum) is before
+            os.kill(os.getpid(), signal.SIGINT)
+            finished.append("after the signal")
+        assert finished == ["after the signal"] and signal.getsignal(signal.SIGINT) is signal.SIG_IGN
+    finally:
+        signal.signal(signal.SIGINT, inherited)
 
 
 def test_without_a_signal_the_block_leaves_the_handlers_as_they_were():

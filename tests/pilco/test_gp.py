@@ -419,6 +419,11 @@ def test_sparse_takes_over_above_threshold_and_optimises_pseudo_inputs():
     # a warm start keeps the previous pseudo-inputs (budget 0 => unchanged)
     again = GPModel(**{**opts, "max_evals_fitc": 0}).fit(x, y, warm_start=report.hyperparameters, seed=2)
     torch.testing.assert_close(again.hyperparameters.pseudo_inputs, report.hyperparameters.pseudo_inputs)
+    # refresh_pseudo ignores them: the random subset of seed 2, as without a warm start
+    fresh = GPModel(**{**opts, "max_evals_fitc": 0}, refresh_pseudo=True).fit(x, y, warm_start=report.hyperparameters, seed=2)
+    scratch = GPModel(**{**opts, "max_evals_fitc": 0}).fit(x, y, seed=2)
+    torch.testing.assert_close(fresh.hyperparameters.pseudo_inputs, scratch.hyperparameters.pseudo_inputs)
+    assert not torch.equal(fresh.hyperparameters.pseudo_inputs, report.hyperparameters.pseudo_inputs)
 
 
 @pytest.mark.parametrize("sparse", [False, True])

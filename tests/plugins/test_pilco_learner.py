@@ -59,7 +59,7 @@ def test_policy_search_budget_comes_from_the_task_preset():
 
 
 def test_gp_training_budgets_reach_the_dynamics_model(monkeypatch):
-    """gp_fitc_evals and gp_hyper_subset configure the GPModel the learner trains (FITC from 20 points here)."""
+    """gp_fitc_evals, gp_hyper_subset and gp_refresh_pseudo configure the GPModel the learner trains (FITC from 20 points here)."""
     import plugins.pilco.learner as learner_module
     from plugins.pilco.gp import GPModel
 
@@ -68,17 +68,18 @@ def test_gp_training_budgets_reach_the_dynamics_model(monkeypatch):
     class Recording(GPModel):
         def fit(self, *args, **kwargs):
             report = super().fit(*args, **kwargs)
-            fits.append((self.max_evals_fitc, self.hyper_subset, report.n_hyper_points, report.sparse))
+            fits.append((self.max_evals_fitc, self.hyper_subset, report.n_hyper_points, report.sparse, self.refresh_pseudo))
             return report
 
     monkeypatch.setattr(learner_module, "GPModel", Recording)
-    options = {**TINY, "sparse_threshold": "20", "num_pseudo": "10", "gp_fitc_evals": "7", "gp_hyper_subset": "12"}
+    options = {**TINY, "sparse_threshold": "20", "num_pseudo": "10", "gp_fitc_evals": "7", "gp_hyper_subset": "12",
+               "gp_refresh_pseudo": "true"}
     run(RunConfig("pilco", "cartpole", seed=0, learner_options=options, task_options={"horizon": 15}, max_trials=2, eval_episodes=1),
         tracker=MemoryTracker())
     # trial 1: 15 points, a full GP on all of them; trial 2: 30 > 20, FITC, hyperparameters on 12 random points
-    assert fits == [(7, 12, 15, False), (7, 12, 12, True)]
+    assert fits == [(7, 12, 15, False, True), (7, 12, 12, True, True)]
     default = Pilco(CartPole().spec, {}, seed=0)
-    assert (default.options["gp_fitc_evals"], default.options["gp_hyper_subset"]) == (100, None)
+    assert (default.options["gp_fitc_evals"], default.options["gp_hyper_subset"], default.options["gp_refresh_pseudo"]) == (100, None, False)
 
 
 def test_planning_horizon_and_cost_width_come_from_the_task_preset():
