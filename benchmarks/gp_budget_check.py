@@ -45,6 +45,7 @@ import torch
 ROOT = Path(__file__).resolve().parents[1]
 sys.path.insert(0, str(ROOT))
 
+from benchmarks.pilco_prediction_check import real_costs  # noqa: E402
 from harness.discovery import load_learner, load_task  # noqa: E402
 from harness.evaluation import Evaluator  # noqa: E402
 from harness.runner import load_episodes  # noqa: E402
@@ -85,13 +86,6 @@ def closed_form_J(model: GPModel, policy, spec, horizon: int, mean_only: bool) -
                                 spec.init_cov, horizon, mean_only=mean_only)
     with torch.no_grad():
         return float(objective.step_costs()[0].sum())
-
-
-def real_J(task, policy, horizon: int, episodes: int) -> tuple[float, float]:
-    """Mean real cost over ``horizon`` steps (a terminated episode holds its last cost) and success rate."""
-    result = Evaluator(task, n_episodes=episodes, seed=200_000)(policy)
-    totals = [ep.costs[:horizon].sum() + (horizon - ep.steps) * ep.costs[-1] * ep.terminated for ep in result.episodes]
-    return float(np.mean(totals)), float(result.success_rate)
 
 
 def main(argv: list[str] | None = None) -> None:
@@ -140,11 +134,26 @@ def main(argv: list[str] | None = None) -> None:
     horizon, mean_only = int(settings["planning_horizon"]), bool(settings["mean_only"])
     threshold = int(settings["preset"]["sparse_threshold"])
     num_pseudo = int(settings["num_pseudo"])
-    real, success = real_J(task, policy, horizon, args.episodes)
+    per_step, success = real_costs(Evaluator(task, n_episodes=args.episodes, seed=200_000), policy, horizon)
+    real = float(per_step.sum())
     print(f"{len(x_train)} training / {len(x_test)} held-out transitions; policy of trial {policy_trial}: real J {real:.2f}, "
           f"success {100 * success:.0f} %", flush=True)
 
     rows = []
+
+    def fit_and_score(label: str, seed: int, fitc_evals: int, subset: int | None, warm_start=None, refresh: bool = False) -> None:
+        """Train a GP on the training transitions, score it on the held-out ones, add a row."""
+        model = GPModel(sparse_threshold=threshold, num_pseudo=num_pseudo, max_evals_fitc=fitc_evals,
+                        hyper_subset=len(x_train) if subset is None else subset, refresh_pseudo=refresh)
+        start = time.process_time()
+        fit = model.fit(x_train, y_train, warm_start=warm_start, seed=seed)
+        cpu = time.process_time() - start
+        nlpd, smse = one_step_scores(model, x_test, y_test)
+        J = closed_form_J(model, policy, spec, horizon, mean_only)
+        rows.append((label, str(seed), f"{cpu:.0f}", nlpd, smse, J))
+        print(f"{label} seed {seed}: fit {cpu:.0f} s CPU ({fit.evaluations} evaluations), NLPD {nlpd:.3f}, SMSE {smse:.4f}, "
+              f"J {J:.2f}", flush=True)
+
     if own is not None:
         model = GPModel()
         model.load_state_dict(own["gp"])
@@ -152,34 +161,14 @@ def main(argv: list[str] | None = None) -> None:
         rows.append((budget, "", "", *one_step_scores(model, x_test, y_test), closed_form_J(model, policy, spec, horizon, mean_only)))
     for fitc_evals, subset in args.configs:
         for seed in args.seeds:
-            model = GPModel(sparse_threshold=threshold, num_pseudo=num_pseudo, max_evals_fitc=fitc_evals,
-                            hyper_subset=len(x_train) if subset is None else subset)
-            start = time.process_time()
-            fit = model.fit(x_train, y_train, seed=seed)
-            cpu = time.process_time() - start
-            nlpd, smse = one_step_scores(model, x_test, y_test)
-            J = closed_form_J(model, policy, spec, horizon, mean_only)
             label = f"{fitc_evals}:{'all' if subset is None else subset}"
-            rows.append((label, str(seed), f"{cpu:.0f}", nlpd, smse, J))
-            print(f"{label} seed {seed}: fit {cpu:.0f} s CPU ({fit.evaluations} evaluations), NLPD {nlpd:.3f}, SMSE {smse:.4f}, "
-                  f"J {J:.2f}", flush=True)
-            if previous is None:
-                continue
-            warm = GPModel()
-            warm.load_state_dict(previous["gp"])
-            for keep, what in ((True, "its pseudo-inputs"), (False, "fresh pseudo-inputs")):
-                hyp = warm.hyperparameters.clone()
-                if not keep:
-                    hyp.pseudo_inputs = None  # -> a random subset of the data, with the same budget (factor 1)
-                model = GPModel(sparse_threshold=threshold, num_pseudo=num_pseudo, max_evals_fitc=fitc_evals, fitc_first_factor=1,
-                                hyper_subset=len(x_train) if subset is None else subset)
-                start = time.process_time()
-                model.fit(x_train, y_train, warm_start=hyp, seed=seed)
-                cpu = time.process_time() - start
-                nlpd, smse = one_step_scores(model, x_test, y_test)
-                J = closed_form_J(model, policy, spec, horizon, mean_only)
-                rows.append((f"{label} from the run's trial-{k - 1} GP, {what}", str(seed), f"{cpu:.0f}", nlpd, smse, J))
-                print(f"{rows[-1][0]} seed {seed}: fit {cpu:.0f} s CPU, NLPD {nlpd:.3f}, SMSE {smse:.4f}, J {J:.2f}", flush=True)
+            fit_and_score(label, seed, fitc_evals, subset)
+            if previous is not None:  # the run's trial-(k-1) GP as warm start, with the same FITC budget either way
+                warm = GPModel()
+                warm.load_state_dict(previous["gp"])
+                for refresh, what in ((False, "its pseudo-inputs"), (True, "fresh pseudo-inputs")):
+                    fit_and_score(f"{label} from the run's trial-{k - 1} GP, {what}", seed, fitc_evals, subset,
+                                  warm.hyperparameters, refresh)
 
     command = "python benchmarks/gp_budget_check.py " + " ".join(argv if argv is not None else sys.argv[1:])
     lines = [

@@ -160,12 +160,13 @@ def load_episodes(path: Path) -> list[Episode]:
         data = np.load(path)
     except OSError as exc:
         raise FileNotFoundError(f"cannot read episodes file {path}: {exc}") from exc
-    count = sum(1 for key in data.files if key.endswith("_observations"))
-    return [
-        Episode(observations=data[f"ep{i}_observations"], states=data[f"ep{i}_states"], actions=data[f"ep{i}_actions"],
-                costs=data[f"ep{i}_costs"], terminated=bool(data[f"ep{i}_terminated"]))
-        for i in range(count)
-    ]
+    with data:
+        count = sum(1 for key in data.files if key.endswith("_observations"))
+        return [
+            Episode(observations=data[f"ep{i}_observations"], states=data[f"ep{i}_states"], actions=data[f"ep{i}_actions"],
+                    costs=data[f"ep{i}_costs"], terminated=bool(data[f"ep{i}_terminated"]))
+            for i in range(count)
+        ]
 
 
 def run_identity(prep: Prepared) -> dict[str, Any]:

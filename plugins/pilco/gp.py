@@ -610,13 +610,12 @@ class GPModel:
         if sparse:
             m = self.num_pseudo
             previous = None if warm_start is None else warm_start.pseudo_inputs
-            if previous is not None and tuple(previous.shape) == (m, dim) and not self.refresh_pseudo:
+            warm = previous is not None and tuple(previous.shape) == (m, dim)
+            if warm and not self.refresh_pseudo:
                 z0 = torch.as_tensor(previous, dtype=DTYPE).detach().clone()
-                fitc_budget = self.max_evals_fitc
             else:
                 z0 = x[torch.randperm(n, generator=gen)[:m]].clone()
-                first = previous is None or tuple(previous.shape) != (m, dim)
-                fitc_budget = self.max_evals_fitc * (self.fitc_first_factor if first else 1)
+            fitc_budget = self.max_evals_fitc * (1 if warm else self.fitc_first_factor)
             z, fitc_per_output, res = optimise_pseudo_inputs(x, y, best_hyp, z0, fitc_budget, self.fitc_ridge)
             best_hyp.pseudo_inputs = z
             fitc_nll = float(fitc_per_output.sum())

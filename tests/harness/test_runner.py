@@ -8,8 +8,8 @@ import pytest
 from harness import runner
 from harness.errors import InvalidActionError
 from harness.interaction import Interaction
-from harness.task import Episode
 from harness.runner import RunConfig
+from harness.task import Episode
 from harness.testing import LearnerConformance, TaskConformance
 from harness.tracking import MemoryTracker
 from tests.harness import toy
