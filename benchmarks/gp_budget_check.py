@@ -32,10 +32,8 @@ pseudo-inputs, or drawing fresh ones from the data with the same budget. Writes
 from __future__ import annotations
 
 import argparse
-import json
 import math
 import sys
-import tempfile
 import time
 from pathlib import Path
 
@@ -46,15 +44,12 @@ ROOT = Path(__file__).resolve().parents[1]
 sys.path.insert(0, str(ROOT))
 
 from benchmarks.pilco_prediction_check import real_costs  # noqa: E402
-from harness.discovery import load_learner, load_task  # noqa: E402
 from harness.evaluation import Evaluator  # noqa: E402
-from harness.runner import load_episodes  # noqa: E402
-from harness.testrun import task_options  # noqa: E402
-from harness.tracking import open_client, resolve_tracking_uri  # noqa: E402
 from plugins.pilco.gp import GPModel  # noqa: E402
 from plugins.pilco.learner import transitions  # noqa: E402
 from plugins.pilco.objective import PolicyObjective  # noqa: E402
 from plugins.pilco.propagate import StateLayout  # noqa: E402
+from plugins.pilco.saved_run import SavedPilcoRun  # noqa: E402
 
 
 def parse_config(text: str) -> tuple[int, int | None]:
@@ -103,35 +98,22 @@ def main(argv: list[str] | None = None) -> None:
     args = parser.parse_args(argv)
     torch.set_num_threads(1)
 
-    client = open_client(resolve_tracking_uri(args.tracking_uri))
-    run = client.get_run(args.run_id)
-    params = run.data.params
-    if not params.get("learner", "").startswith("pilco"):
-        sys.exit(f"run {args.run_id} is a {params.get('learner')!r} run; this check needs a PILCO run")
-    task = load_task(params["task"])(**task_options(params))
-    spec = task.spec
     k = args.train_episodes
-    with tempfile.TemporaryDirectory() as tmp:
-        episodes = load_episodes(Path(client.download_artifacts(args.run_id, "episodes/interaction_episodes.npz", tmp)))
+    with SavedPilcoRun(args.run_id, args.tracking_uri) as run:
+        episodes = run.episodes()
         if not 1 <= k < len(episodes):
             sys.exit(f"run {args.run_id} recorded {len(episodes)} episodes; --train-episodes must leave some to test on (1..{len(episodes) - 1})")
-        trials = sorted(int(Path(a.path).stem[len("policy_trial"):]) for a in client.list_artifacts(args.run_id, "policies"))
-        policy_trial = args.policy_trial or max(trials)
-        policy = load_learner(params["learner"]).load_policy(
-            Path(client.download_artifacts(args.run_id, f"policies/policy_trial{policy_trial:03d}.pkl", tmp)))
-        settings = json.loads(Path(client.download_artifacts(args.run_id, "trial001/pilco_settings.json", tmp)).read_text())
-        try:
-            own = torch.load(client.download_artifacts(args.run_id, f"trial{k:03d}/model_trial{k:03d}.pt", tmp), weights_only=False)
-        except Exception:  # noqa: BLE001 - the run may not have reached trial k
-            own = None
-        previous = None
-        if args.warm_start:
-            previous = torch.load(client.download_artifacts(args.run_id, f"trial{k - 1:03d}/model_trial{k - 1:03d}.pt", tmp),
-                                  weights_only=False)
+        policy_trial = args.policy_trial or max(run.policy_trials())
+        policy = run.policy(policy_trial)
+        settings = run.settings
+        own = run.saved_model(k) if k in run.model_trials() else None
+        previous = run.saved_model(k - 1) if args.warm_start else None
+    params, task = run.params, run.task
+    spec = task.spec
     layout = StateLayout(spec.state_dim, spec.angle_indices, tuple(settings["model_inputs"]), tuple(settings["policy_inputs"]))
     x_train, y_train = transitions(episodes[:k], layout)
     x_test, y_test = transitions(episodes[k:], layout)
-    horizon, mean_only = int(settings["planning_horizon"]), bool(settings["mean_only"])
+    horizon, mean_only = run.planning_horizon, run.mean_only
     threshold = int(settings["preset"]["sparse_threshold"])
     num_pseudo = int(settings["num_pseudo"])
     per_step, success = real_costs(Evaluator(task, n_episodes=args.episodes, seed=200_000), policy, horizon)

@@ -23,9 +23,7 @@ than the one the search found. Writes ``prediction_check_<task>_<run>_t<K>.md`` 
 from __future__ import annotations
 
 import argparse
-import json
 import sys
-import tempfile
 from pathlib import Path
 
 import numpy as np
@@ -34,14 +32,11 @@ import torch
 ROOT = Path(__file__).resolve().parents[1]
 sys.path.insert(0, str(ROOT))
 
-from harness.discovery import load_learner, load_task  # noqa: E402
 from harness.evaluation import Evaluator  # noqa: E402
-from harness.testrun import task_options  # noqa: E402
-from harness.tracking import open_client, resolve_tracking_uri  # noqa: E402
-from plugins.pilco.gp import GPModel  # noqa: E402
 from plugins.pilco.learner import linear_policy_from_gain  # noqa: E402
 from plugins.pilco.objective import PolicyObjective  # noqa: E402
 from plugins.pilco.sampling import sampled_costs  # noqa: E402
+from plugins.pilco.saved_run import SavedPilcoRun  # noqa: E402
 from tasks.unicycle_lqr import riding_lqr  # noqa: E402
 
 
@@ -75,32 +70,18 @@ def main(argv: list[str] | None = None) -> None:
     args = parser.parse_args(argv)
     torch.set_num_threads(1)
 
-    uri = resolve_tracking_uri(args.tracking_uri)
-    client = open_client(uri)
-    run = client.get_run(args.run_id)
-    params = run.data.params
-    if not params.get("learner", "").startswith("pilco"):
-        sys.exit(f"run {args.run_id} is a {params.get('learner')!r} run; this check needs a PILCO run")
-    trials = sorted(int(a.path[len("trial"):]) for a in client.list_artifacts(args.run_id) if a.is_dir and a.path.startswith("trial"))
-    trial = args.trial if args.trial is not None else max(trials)
-    task = load_task(params["task"])(**task_options(params))
+    with SavedPilcoRun(args.run_id, args.tracking_uri) as run:
+        trial = args.trial if args.trial is not None else max(run.model_trials())
+        saved = run.saved_model(trial)
+        model, policy = run.model(trial), run.policy(trial)
+        horizon, mean_only = run.planning_horizon, run.mean_only
+    params, task = run.params, run.task
     spec = task.spec
-    with tempfile.TemporaryDirectory() as tmp:
-        folder = f"trial{trial:03d}"
-        model_file = client.download_artifacts(args.run_id, f"{folder}/model_trial{trial:03d}.pt", tmp)
-        policy_file = client.download_artifacts(args.run_id, f"policies/policy_trial{trial:03d}.pkl", tmp)
-        saved = torch.load(model_file, weights_only=False)
-        settings_file = client.download_artifacts(args.run_id, "trial001/pilco_settings.json", tmp)
-        settings = json.loads(Path(settings_file).read_text())
-        policy = load_learner(params["learner"]).load_policy(Path(policy_file))
-    model = GPModel()
-    model.load_state_dict(saved["gp"])
-    horizon = int(settings["planning_horizon"])
     evaluator = Evaluator(task, n_episodes=args.episodes, seed=200_000)
 
     def check(policy) -> tuple[np.ndarray, np.ndarray, np.ndarray, float]:
         objective = PolicyObjective(policy.controller, model.posterior(), policy.layout, spec.cost, spec.init_mean,
-                                    spec.init_cov, horizon, mean_only=bool(settings["mean_only"]))
+                                    spec.init_cov, horizon, mean_only=mean_only)
         with torch.no_grad():
             closed = objective.step_costs()[0].numpy()
         return (closed, sampled_costs(objective, args.particles, seed=0), *real_costs(evaluator, policy, horizon))

@@ -50,7 +50,6 @@ import dataclasses
 import itertools
 import math
 import sys
-import tempfile
 import time
 from pathlib import Path
 
@@ -60,17 +59,17 @@ import torch
 ROOT = Path(__file__).resolve().parents[1]
 sys.path.insert(0, str(ROOT))
 
-from harness.discovery import load_learner, load_task  # noqa: E402
+from harness.discovery import load_task  # noqa: E402
 from harness.errors import NumericalError  # noqa: E402
 from benchmarks.pilco_prediction_check import held_costs  # noqa: E402
 from harness.evaluation import Evaluator  # noqa: E402
 from harness.testrun import task_options  # noqa: E402
-from harness.tracking import open_client, resolve_tracking_uri  # noqa: E402
 from plugins.pilco.gp import GPModel  # noqa: E402
 from plugins.pilco.learner import PilcoPolicy, linear_policy_from_gain, transitions  # noqa: E402
 from plugins.pilco.objective import PolicyObjective  # noqa: E402
 from plugins.pilco.policy_search import optimise_policy  # noqa: E402
 from plugins.pilco.sampling import sampled_costs  # noqa: E402
+from plugins.pilco.saved_run import SavedPilcoRun  # noqa: E402
 from tasks.unicycle_lqr import riding_lqr  # noqa: E402
 
 DEFAULT_RUN = "a3e1c149352342babeb677f26a9ff0ac"
@@ -176,32 +175,20 @@ def main(argv: list[str] | None = None) -> None:
     torch.set_num_threads(1)
     t_start = time.perf_counter()
 
-    client = open_client(resolve_tracking_uri(args.tracking_uri))
-    run = client.get_run(args.run_id)
-    params = run.data.params
-    if params.get("learner") != "pilco" or params.get("task") != "unicycle":
-        sys.exit(f"run {args.run_id} is {params.get('learner')} on {params.get('task')}; this check needs pilco on unicycle")
-    task = load_task("unicycle")(**task_options(params))
-    spec = task.spec
-    learner_cls = load_learner("pilco")
-    mean_only = bool(learner_cls.mean_only)
-    width = None if params.get("learner.cost_width") in (None, "None") else float(params["learner.cost_width"])
-    plan_h = {int(m.step): int(m.value) for m in client.get_metric_history(args.run_id, "planning_horizon")}
-    J_after = {int(m.step): m.value for m in client.get_metric_history(args.run_id, "J_after")}
     horizons = sorted(set(args.horizons))
-
     loaded = {}
-    with tempfile.TemporaryDirectory() as tmp:
+    with SavedPilcoRun(args.run_id, args.tracking_uri, task="unicycle") as run:
+        plan_h = {step: int(value) for step, value in run.metric("planning_horizon").items()}
+        J_after = run.metric("J_after")
         for trial in sorted(set(args.trials) | set(args.search_trials)):
-            model_file = client.download_artifacts(args.run_id, f"trial{trial:03d}/model_trial{trial:03d}.pt", tmp)
-            policy_file = client.download_artifacts(args.run_id, f"policies/policy_trial{trial:03d}.pkl", tmp)
-            saved = torch.load(model_file, weights_only=False)
-            model = GPModel()
-            model.load_state_dict(saved["gp"])
-            policy = learner_cls.load_policy(Path(policy_file))
+            saved, model, policy = run.saved_model(trial), run.model(trial), run.policy(trial)
             if policy.layout != saved["layout"]:
                 sys.exit(f"trial {trial}: the policy's layout {policy.layout} differs from the model's {saved['layout']}")
             loaded[trial] = (saved, model, policy)
+    params, task = run.params, run.task
+    spec = task.spec
+    mean_only = bool(run.learner_cls.mean_only)
+    width = None if params.get("learner.cost_width") in (None, "None") else float(params["learner.cost_width"])
 
     models: dict[int, list[tuple[str, GPModel]]] = {}
     for trial in args.trials:

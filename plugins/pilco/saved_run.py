@@ -1,0 +1,132 @@
+"""A PILCO run read back from its tracking store: task, settings, trained GPs, policies and data.
+
+What a PILCO run stores (artifact paths in the run):
+
+* ``trial001/pilco_settings.json``: the learner's resolved settings (preset, planning horizon,
+  model and policy inputs, ``mean_only``), written once (``Pilco._save_settings``);
+* ``trialKKK/model_trialKKK.pt``: the GP trained at trial K, with its layout and preset
+  (``Pilco._save_model``);
+* ``policies/policy_trialKKK.pkl``: the policy handed over at trial K (the runner);
+* ``episodes/interaction_episodes.npz``: every interaction episode, random ones first (the runner).
+
+The benchmarks that re-examine a run (``pilco_prediction_check``, ``gp_budget_check``,
+``unicycle_objective_check``) read it through :class:`SavedPilcoRun`::
+
+    with SavedPilcoRun(run_id, tracking_uri) as run:
+        model, policy = run.model(15), run.policy(15)
+
+Files are downloaded into a temporary folder that is removed when the ``with`` block ends.
+"""
+
+from __future__ import annotations
+
+import json
+import tempfile
+from functools import cached_property
+from pathlib import Path
+from typing import Any
+
+import torch
+
+from harness.discovery import load_learner, load_task
+from harness.errors import CheckpointError
+from harness.runner import load_episodes
+from harness.testrun import task_options
+from harness.tracking import open_client, resolve_tracking_uri
+from harness.task import Episode
+from plugins.pilco.gp import GPModel
+
+
+class SavedPilcoRun:
+    """One PILCO (or ``pilco-mean``) run of a tracking store, opened for reading.
+
+    Args:
+        run_id: the MLflow run id.
+        tracking_uri: the store (default: ``MLFLOW_TRACKING_URI``, else the local SQLite default).
+        task: if given, the run must be on this task.
+
+    Raises:
+        CheckpointError: the run is not a PILCO run (on ``task``), or a requested file is missing.
+    """
+
+    def __init__(self, run_id: str, tracking_uri: str | None = None, task: str | None = None) -> None:
+        self.run_id = run_id
+        self.client = open_client(resolve_tracking_uri(tracking_uri))
+        self.params: dict[str, str] = dict(self.client.get_run(run_id).data.params)
+        learner, task_name = self.params.get("learner", ""), self.params.get("task")
+        if not learner.startswith("pilco"):
+            raise CheckpointError(f"run {run_id} is a {learner or 'non-harness'!r} run; this needs a PILCO run")
+        if task is not None and task_name != task:
+            raise CheckpointError(f"run {run_id} is PILCO on {task_name!r}; this needs a run on {task!r}")
+        self.learner_cls = load_learner(learner)
+        self.task = load_task(task_name)(**task_options(self.params))
+        self._tmp = tempfile.TemporaryDirectory(prefix="pilco-run-")
+        self._saved_models: dict[int, dict[str, Any]] = {}
+
+    def __enter__(self) -> SavedPilcoRun:
+        return self
+
+    def __exit__(self, *exc: object) -> None:
+        self.close()
+
+    def close(self) -> None:
+        """Remove the downloaded files."""
+        self._tmp.cleanup()
+
+    def file(self, artifact: str) -> Path:
+        """The local copy of one artifact of the run (downloaded once)."""
+        local = Path(self._tmp.name) / artifact
+        if not local.exists():
+            try:
+                return Path(self.client.download_artifacts(self.run_id, artifact, self._tmp.name))
+            except Exception as exc:  # noqa: BLE001 - MLflow raises several types for a missing artifact
+                raise CheckpointError(f"run {self.run_id} has no artifact {artifact!r} ({exc})") from exc
+        return local
+
+    @cached_property
+    def settings(self) -> dict[str, Any]:
+        """The learner's resolved settings (``pilco_settings.json``)."""
+        return json.loads(self.file("trial001/pilco_settings.json").read_text())
+
+    @property
+    def planning_horizon(self) -> int:
+        """Predicted steps in J at the first trial (a horizon schedule may have grown it later)."""
+        return int(self.settings["planning_horizon"])
+
+    @property
+    def mean_only(self) -> bool:
+        """Whether the run planned with the GP mean only (the ``pilco-mean`` ablation)."""
+        return bool(self.settings["mean_only"])
+
+    def model_trials(self) -> list[int]:
+        """Trials with a saved GP (``trialKKK/`` folders), ascending."""
+        return sorted(int(a.path[len("trial"):]) for a in self.client.list_artifacts(self.run_id)
+                      if a.is_dir and a.path.startswith("trial"))
+
+    def policy_trials(self) -> list[int]:
+        """Trials with a saved policy, ascending."""
+        return sorted(int(Path(a.path).stem[len("policy_trial"):]) for a in self.client.list_artifacts(self.run_id, "policies"))
+
+    def saved_model(self, trial: int) -> dict[str, Any]:
+        """The stored dict of trial ``trial``'s GP: ``gp`` (state dict), ``layout``, ``preset``."""
+        if trial not in self._saved_models:
+            self._saved_models[trial] = torch.load(self.file(f"trial{trial:03d}/model_trial{trial:03d}.pt"), weights_only=False)
+        return self._saved_models[trial]
+
+    def model(self, trial: int) -> GPModel:
+        """The GP trained at trial ``trial``, ready to predict."""
+        model = GPModel()
+        model.load_state_dict(self.saved_model(trial)["gp"])
+        return model
+
+    def policy(self, trial: int):
+        """The policy handed over at trial ``trial`` (a ``PilcoPolicy``)."""
+        return self.learner_cls.load_policy(self.file(f"policies/policy_trial{trial:03d}.pkl"))
+
+    def episodes(self) -> list[Episode]:
+        """Every interaction episode of the run, in the order they happened (random ones first)."""
+        return load_episodes(self.file("episodes/interaction_episodes.npz"))
+
+    def metric(self, key: str) -> dict[int, float]:
+        """A per-trial metric's history, ``{step: value}``."""
+        return {int(m.step): m.value for m in self.client.get_metric_history(self.run_id, key)}

@@ -1,0 +1,61 @@
+"""Reading a PILCO run back from an MLflow store (what the benchmarks that re-examine a run use)."""
+
+from __future__ import annotations
+
+import numpy as np
+import pytest
+import torch
+
+from harness.errors import CheckpointError
+from harness.runner import RunConfig, run
+from plugins.pilco.objective import PolicyObjective
+from plugins.pilco.saved_run import SavedPilcoRun
+
+TINY = {"num_centres": "4", "policy_max_evaluations": "8", "gp_max_evals": "20", "plots": "false", "sample_particles": "0"}
+
+
+@pytest.fixture(scope="module")
+def stored(tmp_path_factory):
+    from harness.tracking import MlflowTracker, default_tracking_uri
+
+    uri = default_tracking_uri(tmp_path_factory.mktemp("saved-run-store"))
+    pilco = run(RunConfig("pilco", "cartpole", seed=0, learner_options=TINY, task_options={"horizon": 12}, max_trials=2,
+                          eval_episodes=2), tracker=MlflowTracker(uri))
+    other = run(RunConfig("random", "cartpole", seed=0, task_options={"horizon": 12}, max_trials=1, eval_episodes=2),
+                tracker=MlflowTracker(uri))
+    return uri, pilco, other
+
+
+def test_a_saved_run_gives_back_its_task_settings_models_policies_and_episodes(stored):
+    uri, pilco, _ = stored
+    with SavedPilcoRun(pilco.run_id, uri, task="cartpole") as saved:
+        assert saved.task.spec.horizon == 12  # the recorded task option, not the task's default
+        assert saved.planning_horizon == 12 and saved.mean_only is False
+        assert saved.model_trials() == [1, 2] and saved.policy_trials() == [1, 2]
+        episodes = saved.episodes()
+        # the random rollout and trial 1's; the policy of trial 2 was only evaluated (the run ended there)
+        assert len(episodes) == 2 and all(ep.steps == 12 for ep in episodes)
+        model, policy = saved.model(2), saved.policy(2)
+        assert saved.saved_model(2)["layout"] == policy.layout
+        # trial 2's GP was trained on the episodes before it (the random rollout and trial 1): 2 x 12 transitions
+        assert saved.saved_model(2)["gp"]["inputs"].shape[0] == 2 * 12
+        assert saved.metric("J_after").keys() == {1, 2}
+        objective = PolicyObjective(policy.controller, model.posterior(), policy.layout, saved.task.spec.cost,
+                                    saved.task.spec.init_mean, saved.task.spec.init_cov, saved.planning_horizon)
+        with torch.no_grad():
+            J = float(objective.step_costs()[0].sum())
+        # the closed-form J of the handed-over policy under the trial's model is what the run logged
+        assert J == pytest.approx(saved.metric("J_after")[2], rel=1e-6)
+        folder = saved.file("trial001/pilco_settings.json").parent
+    assert not folder.exists()  # downloads are removed when the block ends
+
+
+def test_a_missing_artifact_or_a_non_pilco_run_is_named(stored):
+    uri, pilco, other = stored
+    with pytest.raises(CheckpointError, match="'random' run; this needs a PILCO run"):
+        SavedPilcoRun(other.run_id, uri)
+    with pytest.raises(CheckpointError, match="needs a run on 'unicycle'"):
+        SavedPilcoRun(pilco.run_id, uri, task="unicycle")
+    with SavedPilcoRun(pilco.run_id, uri) as saved, pytest.raises(CheckpointError, match="no artifact 'trial009/model_trial009.pt'"):
+        saved.model(9)
+    assert np.isfinite(saved.metric("J_before")[1])
