@@ -163,8 +163,14 @@ def bench_command(
     if quiet:
         click.echo(result.summary())
     if isinstance(tracker, MlflowTracker):
+        from harness.report import bench_group_of
+        from harness.tracking import open_client
+
+        _, group = bench_group_of(open_client(tracker.tracking_uri).get_run(result.run_id).data.params)
         click.echo(f"MLflow run {result.run_id} in experiment '{task}' at {tracker.tracking_uri}")
         click.echo(f"  browse: mlflow ui --backend-store-uri {tracker.tracking_uri}")
+        click.echo(f"  report: harness report --tracking-uri {tracker.tracking_uri} --sweep {group}"
+                   "  (the runs of this configuration, all seeds)")
 
 
 @main.command("eval")

@@ -214,6 +214,13 @@ def bench_group_id(config: dict[str, str], defaults: dict[str, str]) -> str:
     return "bench-" + hashlib.sha256(blob.encode()).hexdigest()[:8]
 
 
+def bench_group_of(params: dict[str, str]) -> tuple[dict[str, str], str]:
+    """A `harness bench` run's configuration (learner, task, limits, resolved options) from its
+    logged params, and the ``bench-<hash>`` group that `harness report --sweep` knows it by."""
+    config = {k: v for k, v in params.items() if k in ("learner", "task")} | run_config(params)
+    return config, bench_group_id(config, _option_defaults(config.get("learner", ""), config.get("task", "")))
+
+
 @functools.lru_cache(maxsize=None)
 def _option_defaults(learner: str, task: str) -> dict[str, str]:
     """The installed plugins' option defaults as logged params (``learner.<k>``, ``task.<k>``);
@@ -253,8 +260,7 @@ def _bench_groups(client) -> list[tuple[SweepInfo, list]]:
         for run in _search_all(client, experiment.experiment_id, ""):
             if ROLE_TAG in run.data.tags or "learner" not in run.data.tags:
                 continue
-            config = {k: v for k, v in run.data.params.items() if k in ("learner", "task")} | run_config(run.data.params)
-            group_id = bench_group_id(config, _option_defaults(config.get("learner", ""), config.get("task", "")))
+            config, group_id = bench_group_of(run.data.params)
             grouped[group_id].append(run)
             config_of[group_id] = config
     out = []

@@ -93,6 +93,15 @@ def test_bench_writes_an_mlflow_run_that_reads_back(tmp_path, mlflow_uri):
     artifacts = {a.path for a in client.list_artifacts(row["run_id"])}
     assert {"policies", "episodes", "result.json"} <= artifacts
     assert not (tmp_path / "mlruns").exists()  # artifacts live beside the store, not in the cwd
+    # the printed report command selects this configuration's runs
+    import re
+
+    command = re.search(r"report: (harness report .*--sweep (bench-[0-9a-f]{8}))", proc.stdout)
+    assert command, proc.stdout
+    out = tmp_path / "by-group"
+    report = CliRunner().invoke(main, ["report", "--tracking-uri", mlflow_uri, "--sweep", command.group(2), "--out", str(out)])
+    assert report.exit_code == 0, report.output
+    assert f"`{row['run_id'][:8]}`" in (out / "runs_cartpole.md").read_text()
 
 
 def test_main_module_entry_point_help():
