@@ -269,8 +269,11 @@ def test_sweeps_of_one_learner_are_told_apart_by_the_settings_they_differ_in():
     assert variant_labels("pilco", {"a": base, "b": dict(base)}) == {"a": "pilco@a", "b": "pilco@b"}
     three = variant_labels("pilco", {"a": base, "b": dict(base), "c": base | {"task.horizon": "30"}})
     assert three == {"a": "pilco [horizon=40]@a", "b": "pilco [horizon=40]@b", "c": "pilco [horizon=30]"}
-    many = {"a": base | {"task.x": "1", "task.y": "1"}, "b": dict.fromkeys(base, "0") | {"task.x": "2", "task.y": "2"}}
-    assert variant_labels("pilco", many) == {"a": "pilco@a", "b": "pilco@b"}  # 5 settings differ
+    many = {"a": base | {"task.x": "1", "task.y": "1", "task.z": "1"},
+            "b": dict.fromkeys(base, "0") | {"task.x": "2", "task.y": "2", "task.z": "2"}}
+    assert variant_labels("pilco", many) == {"a": "pilco@a", "b": "pilco@b"}  # 6 settings differ (more than LABEL_SETTINGS)
+    five = {k: {key: v for key, v in c.items() if key != "task.z"} for k, c in many.items()}
+    assert all("@" not in label and label.count("=") == 5 for label in variant_labels("pilco", five).values())
     both = variant_labels("pilco", {"a": base | {"learner.horizon": "5"}, "b": base | {"task.horizon": "30", "learner.horizon": "9"}})
     assert both == {"a": "pilco [learner.horizon=5, task.horizon=40]", "b": "pilco [learner.horizon=9, task.horizon=30]"}
     # a setting one run of a sweep differs in is not the sweep's: not compared
