@@ -50,7 +50,8 @@ def parse_test(text: str) -> tuple[str, int, int]:
 
 
 def label(params: dict[str, str]) -> str:
-    """The run's GP options that differ from their defaults' absence, e.g. ``gp_refresh_pseudo=True``."""
+    """The GP options the run logged with a value (not None, not False), e.g. ``gp_fitc_evals=100,
+    gp_refresh_pseudo=True``; an option added after the run was made is absent from its label."""
     parts = [f"{k}={params[f'learner.{k}']}" for k in GP_OPTIONS if params.get(f"learner.{k}") not in (None, "None", "False")]
     return ", ".join(parts) or "GP options at their defaults"
 

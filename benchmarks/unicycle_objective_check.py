@@ -187,7 +187,7 @@ def main(argv: list[str] | None = None) -> None:
             loaded[trial] = (saved, model, policy)
     params, task = run.params, run.task
     spec = task.spec
-    mean_only = bool(run.learner_cls.mean_only)
+    mean_only = run.mean_only
     width = None if params.get("learner.cost_width") in (None, "None") else float(params["learner.cost_width"])
 
     models: dict[int, list[tuple[str, GPModel]]] = {}

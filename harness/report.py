@@ -317,7 +317,7 @@ def select_run(records: Sequence[RunRecord]) -> RunRecord:
 
 
 #: at most this many differing settings in a row label; more, and the label is ``learner@<sweep id>``
-LABEL_SETTINGS = 5  # settings named in a row label; more and rows are told apart by sweep id
+LABEL_SETTINGS = 5
 
 
 def _label(records: Sequence[RunRecord]) -> None:
