@@ -30,6 +30,7 @@ ROOT = Path(__file__).resolve().parents[1]
 sys.path.insert(0, str(ROOT))
 
 from benchmarks.gp_budget_check import one_step_scores  # noqa: E402
+from harness.errors import exit_on_error  # noqa: E402
 from plugins.pilco.learner import transitions  # noqa: E402
 from plugins.pilco.saved_run import SavedPilcoRun  # noqa: E402
 
@@ -111,4 +112,4 @@ def main(argv: list[str] | None = None) -> None:
 
 
 if __name__ == "__main__":
-    main()
+    exit_on_error(main)

@@ -32,6 +32,7 @@ ROOT = Path(__file__).resolve().parents[1]
 sys.path.insert(0, str(ROOT))
 
 from harness.discovery import load_task  # noqa: E402
+from harness.errors import exit_on_error  # noqa: E402
 from harness.interaction import Interaction  # noqa: E402
 from plugins.pilco.gp import GPModel  # noqa: E402
 from plugins.pilco.learner import Pilco, transitions  # noqa: E402
@@ -165,4 +166,4 @@ def main() -> None:
 
 
 if __name__ == "__main__":
-    main()
+    exit_on_error(main)

@@ -60,7 +60,7 @@ ROOT = Path(__file__).resolve().parents[1]
 sys.path.insert(0, str(ROOT))
 
 from harness.discovery import load_task  # noqa: E402
-from harness.errors import NumericalError  # noqa: E402
+from harness.errors import NumericalError, exit_on_error  # noqa: E402
 from benchmarks.pilco_prediction_check import held_costs  # noqa: E402
 from harness.evaluation import Evaluator  # noqa: E402
 from harness.testrun import task_options  # noqa: E402
@@ -348,4 +348,4 @@ def main(argv: list[str] | None = None) -> None:
 
 
 if __name__ == "__main__":
-    main()
+    exit_on_error(main)

@@ -7,6 +7,9 @@ non-zero; it never shows a traceback for a ``HarnessError`` (use ``--debug`` for
 
 from __future__ import annotations
 
+import sys
+from collections.abc import Callable
+
 
 class HarnessError(Exception):
     """Base class of all errors the harness raises on purpose."""
@@ -55,6 +58,19 @@ class CheckpointError(HarnessError):
 
 class NumericalError(HarnessError):
     """A linear-algebra failure that jitter and retries could not cure."""
+
+
+def exit_on_error(main: Callable[[], object]) -> None:
+    """Run a script's ``main()``; a :class:`HarnessError` ends the script with its one-line message
+    on stderr and its exit code, as the CLI does, instead of a traceback.
+
+    For the scripts in ``benchmarks/``: ``if __name__ == "__main__": exit_on_error(main)``.
+    """
+    try:
+        main()
+    except HarnessError as exc:
+        print(f"error: {exc}", file=sys.stderr)
+        sys.exit(exc.exit_code)
 
 
 class MissingArtifactsWarning(UserWarning):

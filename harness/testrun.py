@@ -17,7 +17,7 @@ from pathlib import Path
 import numpy as np
 
 from harness.discovery import load_learner, load_task
-from harness.errors import CheckpointError, TrackingError
+from harness.errors import CheckpointError
 from harness.evaluation import Evaluator
 
 
@@ -82,14 +82,11 @@ def evaluate_saved_policy(
     trial: int | None = None,
 ) -> PolicyTestReport:
     """Run ``episodes`` test episodes of the run's last (or ``trial``'s) policy; log and return the outcome."""
-    from harness.tracking import open_client, resolve_tracking_uri
+    from harness.tracking import get_run, open_client, resolve_tracking_uri
 
     uri = resolve_tracking_uri(tracking_uri)
     client = open_client(uri)
-    try:
-        run = client.get_run(run_id)
-    except Exception as exc:
-        raise TrackingError(f"no run {run_id!r} in {uri}; list runs with `mlflow ui --backend-store-uri {uri}`") from exc
+    run = get_run(client, run_id, uri)
     params = run.data.params
     task = load_task(params["task"])(**task_options(params))
     artifact = _latest_policy(client, run_id, trial)

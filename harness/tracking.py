@@ -201,10 +201,7 @@ class MlflowTracker:
 
     def resume(self, run_id: str) -> None:
         """Continue logging into the existing run ``run_id`` (marked RUNNING again)."""
-        try:
-            self.client.get_run(run_id)
-        except Exception as exc:
-            raise TrackingError(f"no run {run_id!r} in {self.tracking_uri}; check the id (mlflow ui lists runs)") from exc
+        get_run(self.client, run_id, self.tracking_uri)
         self.run_id = run_id
         self.client.update_run(run_id, status="RUNNING")
         self.set_tags({PROCESS_TAG: process_token()})
@@ -287,6 +284,15 @@ def open_client(tracking_uri: str):
             "check the URI, that the server is running, or pass --tracking-uri"
         ) from exc
     return client
+
+
+def get_run(client, run_id: str, tracking_uri: str):
+    """The MLflow run ``run_id`` of ``client``'s store; a :class:`TrackingError` naming the id and
+    the store if there is no such run."""
+    try:
+        return client.get_run(run_id)
+    except Exception as exc:
+        raise TrackingError(f"no run {run_id!r} in {tracking_uri}; check the id (`mlflow ui --backend-store-uri {tracking_uri}` lists runs)") from exc
 
 
 def artifact_location_for(tracking_uri: str, experiment: str) -> str | None:

@@ -32,7 +32,7 @@ from harness.discovery import load_learner, load_task
 from harness.errors import CheckpointError
 from harness.runner import load_episodes
 from harness.testrun import task_options
-from harness.tracking import open_client, resolve_tracking_uri
+from harness.tracking import get_run, open_client, resolve_tracking_uri
 from harness.task import Episode
 from plugins.pilco.gp import GPModel
 
@@ -46,13 +46,15 @@ class SavedPilcoRun:
         task: if given, the run must be on this task.
 
     Raises:
+        TrackingError: there is no run ``run_id`` in the store.
         CheckpointError: the run is not a PILCO run (on ``task``), or a requested file is missing.
     """
 
     def __init__(self, run_id: str, tracking_uri: str | None = None, task: str | None = None) -> None:
         self.run_id = run_id
-        self.client = open_client(resolve_tracking_uri(tracking_uri))
-        self.params: dict[str, str] = dict(self.client.get_run(run_id).data.params)
+        uri = resolve_tracking_uri(tracking_uri)
+        self.client = open_client(uri)
+        self.params: dict[str, str] = dict(get_run(self.client, run_id, uri).data.params)
         learner, task_name = self.params.get("learner", ""), self.params.get("task")
         if not learner.startswith("pilco"):
             raise CheckpointError(f"run {run_id} is a {learner or 'non-harness'!r} run; this needs a PILCO run")

@@ -6,7 +6,7 @@ import numpy as np
 import pytest
 import torch
 
-from harness.errors import CheckpointError
+from harness.errors import CheckpointError, TrackingError
 from harness.runner import RunConfig, run
 from plugins.pilco.objective import PolicyObjective
 from plugins.pilco.saved_run import SavedPilcoRun
@@ -52,6 +52,8 @@ def test_a_saved_run_gives_back_its_task_settings_models_policies_and_episodes(s
 
 def test_a_missing_artifact_or_a_non_pilco_run_is_named(stored):
     uri, pilco, other = stored
+    with pytest.raises(TrackingError, match="no run 'no-such-run' in sqlite:///"):
+        SavedPilcoRun("no-such-run", uri)
     with pytest.raises(CheckpointError, match="'random' run; this needs a PILCO run"):
         SavedPilcoRun(other.run_id, uri)
     with pytest.raises(CheckpointError, match="needs a run on 'unicycle'"):
