@@ -115,7 +115,8 @@ class RunRecord:
     state_dim: int | None
     error: str = ""
     label: str = ""
-    #: interaction episodes at the run's last hand-over (random ones included)
+    #: interaction episodes the run recorded, random ones included (like ``interaction_seconds``:
+    #: a stopped run's count includes the rollout of its last policy)
     episodes: float | None = None
     #: what the run was configured with: limits and resolved options (params ``learner.*``, ``task.*``)
     config: dict[str, str] = field(default_factory=dict)
@@ -168,7 +169,7 @@ def record_from_run(run, sweep_id: str) -> RunRecord | None:
         policy_parameters=_metric(metrics, "policy_parameters"),
         state_dim=int(float(state_dim)) if state_dim not in (None, "") else None,
         error=tags.get(ERROR_TAG, ""),
-        episodes=_metric(metrics, "interaction_episodes"),
+        episodes=_latest_total(metrics, "interaction_episodes"),
         config=run_config(params),
         process=tags.get(PROCESS_TAG, ""),
     )
@@ -482,7 +483,7 @@ def wall_breakdown(series: Sequence[dict[str, dict[int, float]]]) -> dict[str, A
     ``series``: per run, ``metric -> {step: value}`` for ``wall_seconds`` (cumulative) and the
     :data:`WALL_PARTS`. A trial's wall time is the increase of ``wall_seconds`` over the previous
     trial (the first trial's includes the set-up and initial rollouts). Returns the number of
-    trials, the median and range of the per-trial wall time, the median wall time of the runs'
+    trials (``policies``: policies handed over), the median and range of the per-trial wall time, the median wall time of the runs'
     last trial, the total, and each part's share of the total (``nan`` where no run logs it;
     ``other`` = the rest: rollouts, logging, checkpoints)."""
     walls, last, total, parts = [], [], 0.0, {column: 0.0 for _, column in WALL_PARTS}
@@ -502,7 +503,7 @@ def wall_breakdown(series: Sequence[dict[str, dict[int, float]]]) -> dict[str, A
                 logged[column] = True
                 parts[column] += float(sum(values))
     wall = _range(walls)
-    row: dict[str, Any] = {"trials": len(walls), "wall_per_trial_median_s": wall[0], "wall_per_trial_min_s": wall[1],
+    row: dict[str, Any] = {"policies": len(walls), "wall_per_trial_median_s": wall[0], "wall_per_trial_min_s": wall[1],
                            "wall_per_trial_max_s": wall[2], "last_trial_wall_median_s": _range(last)[0], "total_wall_s": total}
     for _, column in WALL_PARTS:
         row[f"share_{column}"] = parts[column] / total if logged[column] and total > 0 else math.nan
@@ -514,16 +515,16 @@ def wall_breakdown(series: Sequence[dict[str, dict[int, float]]]) -> dict[str, A
 def walltime_markdown(task: str, rows: Sequence[dict[str, Any]]) -> str:
     pct = lambda v: "–" if math.isnan(v) else f"{100 * v:.0f} %"  # noqa: E731
     lines = [f"## {task}: where the wall time goes", "",
-             "Per trial = one hand-over: the learner's work for it (PILCO: GP training, policy search), the harness's "
+             "Per trial = one policy handed over: the learner's work for it (PILCO: GP training, policy search), the harness's "
              "evaluation episodes, the trial's rollout and the logging. Wall per trial grows with the data, so the "
              "last trial's is given too. Shares are of the total wall time of all trials of the row's runs; '–' = not "
              "logged by that learner (or by runs made before `eval_seconds` was logged, whose evaluation is then in "
              "'other'). Machine: shared, 2 cores, one torch thread per run; wall times are upper bounds.", "",
-             "| learner | runs | trials | wall per trial, median [range] (s) | last trial (s, median) | total (h) "
+             "| learner | runs | policies | wall per trial, median [range] (s) | last trial (s, median) | total (h) "
              "| GP training | policy search | evaluation | other |",
              "|---|---|---|---|---|---|---|---|---|---|"]
     for r in rows:
-        lines.append(f"| {r['learner']} | {r['runs']} | {r['trials']} | {_fmt_range(r['wall_per_trial_median_s'], r['wall_per_trial_min_s'], r['wall_per_trial_max_s'])} "
+        lines.append(f"| {r['learner']} | {r['runs']} | {r['policies']} | {_fmt_range(r['wall_per_trial_median_s'], r['wall_per_trial_min_s'], r['wall_per_trial_max_s'])} "
                      f"| {_num(r['last_trial_wall_median_s'])} | {r['total_wall_s'] / 3600:.2f} | {pct(r['share_model_training'])} "
                      f"| {pct(r['share_policy_search'])} | {pct(r['share_evaluation'])} | {pct(r['share_other'])} |")
     return "\n".join(lines) + "\n"

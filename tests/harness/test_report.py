@@ -128,6 +128,10 @@ def test_a_stale_total_of_an_earlier_run_segment_does_not_hide_later_trials():
     # a finished run's totals include what came after its last hand-over
     finished = record_from_run(fake_run({"interaction_seconds_total": 44.0, "interaction_seconds": 40.0}), "s")
     assert finished.interaction_seconds == 44.0
+    # episodes count the same way as seconds: a stopped run's last rollout is in its total, not in its last hand-over's
+    stopped = record_from_run(fake_run({"interaction_seconds_total": 69.0, "interaction_seconds": 66.0,
+                                        "interaction_episodes_total": 23.0, "interaction_episodes": 22.0}), "s")
+    assert (stopped.interaction_seconds, stopped.episodes) == (69.0, 23.0)
 
 
 def test_wall_time_is_split_per_trial_into_the_logged_parts_and_the_rest():
@@ -138,7 +142,7 @@ def test_wall_time_is_split_per_trial_into_the_logged_parts_and_the_rest():
          "policy_opt_seconds": {1: 5.0, 2: 10.0, 3: 20.0}, "eval_seconds": {1: 1.0, 2: 1.0, 3: 1.0}}
     b = {"wall_seconds": {1: 40.0}, "model_train_seconds": {1: 4.0}, "policy_opt_seconds": {1: 30.0}}
     row = wall_breakdown([a, b])
-    assert row["trials"] == 4 and row["total_wall_s"] == 100.0
+    assert row["policies"] == 4 and row["total_wall_s"] == 100.0
     assert (row["wall_per_trial_median_s"], row["wall_per_trial_min_s"], row["wall_per_trial_max_s"]) == (25.0, 10.0, 40.0)
     assert row["last_trial_wall_median_s"] == 35.0  # median of 30 (A's last) and 40 (B's only)
     assert (row["share_model_training"], row["share_policy_search"], row["share_evaluation"]) == (0.10, 0.65, 0.03)
