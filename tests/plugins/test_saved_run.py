@@ -61,3 +61,31 @@ def test_a_missing_artifact_or_a_non_pilco_run_is_named(stored):
     with SavedPilcoRun(pilco.run_id, uri) as saved, pytest.raises(CheckpointError, match="no artifact 'trial009/model_trial009.pt'"):
         saved.model(9)
     assert np.isfinite(saved.metric("J_before")[1])
+
+
+def test_swingup_failure_modes_classes_every_test_episode(stored, tmp_path):
+    from benchmarks.swingup_failure_modes import main
+
+    uri, pilco, _ = stored
+    out = tmp_path / "modes.md"
+    main(["--runs", pilco.run_id, "--trials", "1", "2", "--episodes", "7", "--tracking-uri", uri, "--out", str(out)])
+    rows = [line for line in out.read_text().splitlines() if line.startswith(f"| `{pilco.run_id[:8]}`")]
+    assert len(rows) == 2
+    for row in rows:
+        cells = [c.strip() for c in row.strip("|").split("|")]
+        successes = int(cells[4].split("/")[0])
+        assert successes + int(cells[5]) + int(cells[6]) + int(cells[7]) == 7
+
+
+def test_swingup_failure_modes_pure_parts():
+    from benchmarks.swingup_failure_modes import outcome, wilson_interval
+
+    # the Wilson bounds are the two roots p of (k/n - p)^2 = z^2 p (1 - p) / n
+    for k, n in [(37, 100), (0, 10), (9, 10), (100, 100)]:
+        for p in wilson_interval(k, n):
+            assert (k / n - p) ** 2 == pytest.approx(1.96 ** 2 * p * (1 - p) / n, abs=1e-12)
+    radius = 0.1
+    assert outcome(np.array([1.0, 0.5, 0.3]), radius, solved=False) == "never reached"
+    assert outcome(np.array([1.0, 0.05, 0.3]), radius, solved=False) == "reached, fell away"
+    assert outcome(np.array([1.0, 0.3, 0.05]), radius, solved=False) == "reached, cut off"
+    assert outcome(np.array([1.0, 0.05, 0.05]), radius, solved=True) == "success"
