@@ -9,7 +9,7 @@ For each PILCO run on a swing-up task (``cartpole``, ``double-pendulum``: tasks 
 and a "within ``success_radius`` for ``success_steps`` steps" rule) and each of ``--trials``, the
 policy handed over at that trial is run on ``--episodes`` test episodes from the task's initial
 distribution (the same initial states for every policy). Reported beside the run's own evaluation
-(10 episodes per hand-over, ``eval_success_rate``; the rule for "solved" needs 9 of them):
+(``eval_episodes`` per hand-over, 10 by default, ``eval_success_rate``; "solved" needs 90 % of them):
 
 * success over the test episodes, with a Wilson 95 % interval;
 * each failure classed by what the tip did: **never reached** the success radius; **reached, fell
@@ -111,7 +111,9 @@ def main(argv: list[str] | None = None) -> None:
                     continue
                 found = describe(task, evaluator(run.policy(trial)).episodes)
                 steps = found["steps"]
-                rows.append((run_id[:8], run.params.get("seed", "?"), trial, logged.get(trial), found))
+                n_eval = int(run.params.get("eval_episodes", 10))
+                own = None if trial not in logged else f"{round(n_eval * logged[trial])} of {n_eval}"
+                rows.append((run_id[:8], run.params.get("seed", "?"), trial, own, found))
                 c = found["counts"]
                 print(f"{run_id[:8]} trial {trial}: {c['success']} of {args.episodes} ({c})", flush=True)
             evaluator.close()
@@ -126,18 +128,17 @@ def main(argv: list[str] | None = None) -> None:
         f"Test: {args.episodes} episodes of {steps} steps from the task's initial distribution (seed {args.seed}, the same "
         f"initial states for every policy). Success: tip within {radius * 100:.0f} cm of upright for {hold} consecutive steps. "
         f"Wall time {time.perf_counter() - start:.0f} s.", "",
-        "| run | seed | trial | run's evaluation (of 10) | success (95 % CI) | never reached | reached, fell away "
+        "| run | seed | trial | run's evaluation | success (95 % CI) | never reached | reached, fell away "
         "| reached, cut off | first entry step (quartiles) | median tip distance (m) at steps "
         + ", ".join(map(str, quarter_steps)) + " |",
         "|---|---|---|---|---|---|---|---|---|---|",
     ]
-    for run_id, seed, trial, logged, found in rows:
+    for run_id, seed, trial, own, found in rows:
         c, n = found["counts"], args.episodes
         low, high = wilson_interval(c["success"], n)
         entry = "–" if found["entry_quartiles"] is None else "{:.0f} / {:.0f} / {:.0f}".format(*found["entry_quartiles"])
-        own = "–" if logged is None else f"{round(10 * logged)}"
         dist = ", ".join(f"{d:.2f}" for _, d in found["median_distance"])
-        lines.append(f"| `{run_id}` | {seed} | {trial} | {own} | {c['success']}/{n} ({100 * low:.0f}–{100 * high:.0f} %) "
+        lines.append(f"| `{run_id}` | {seed} | {trial} | {own or '–'} | {c['success']}/{n} ({100 * low:.0f}–{100 * high:.0f} %) "
                      f"| {c['never reached']} | {c['reached, fell away']} | {c['reached, cut off']} | {entry} | {dist} |")
     text = "\n".join(lines) + "\n"
     print(text)

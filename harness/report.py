@@ -483,8 +483,8 @@ def wall_breakdown(series: Sequence[dict[str, dict[int, float]]]) -> dict[str, A
     ``series``: per run, ``metric -> {step: value}`` for ``wall_seconds`` (cumulative) and the
     :data:`WALL_PARTS`. A trial's wall time is the increase of ``wall_seconds`` over the previous
     trial (the first trial's includes the set-up and initial rollouts). Returns the number of
-    trials (``policies``: policies handed over), the median and range of the per-trial wall time, the median wall time of the runs'
-    last trial, the total, and each part's share of the total (``nan`` where no run logs it;
+    trials (``policies``: policies handed over), the median and range of the per-trial wall time,
+    the median wall time of the runs' last trial, the total, and each part's share of the total (``nan`` where no run logs it;
     ``other`` = the rest: rollouts, logging, checkpoints)."""
     walls, last, total, parts = [], [], 0.0, {column: 0.0 for _, column in WALL_PARTS}
     logged = {column: False for _, column in WALL_PARTS}
