@@ -20,7 +20,6 @@ from __future__ import annotations
 import argparse
 import json
 import os
-import platform
 import statistics
 import subprocess
 import sys
@@ -121,7 +120,11 @@ def main(argv: list[str] | None = None) -> None:
         print(json.dumps(worker(args.root, args.worker, options[args.worker], args.steps, args.seed)))
         return
 
-    load = os.getloadavg() if hasattr(os, "getloadavg") else (float("nan"),) * 3
+    # imported here, not at the top: a worker may run with a baseline checkout first on its path
+    sys.path.insert(0, str(ROOT))
+    from benchmarks.report_file import command_line, load_average, machine_line, write_report
+
+    load = load_average()
     versions = {"current": ROOT} | ({"baseline": args.baseline.resolve()} if args.baseline else {})
     rows = []
     for name in names:
@@ -138,15 +141,11 @@ def main(argv: list[str] | None = None) -> None:
         rows.append(row)
         text = "  ".join(f"{v}: {m['cpu']:7.0f} steps/CPU-s ({m['wall']:7.0f}/wall-s)" for v, m in med.items())
         print(f"{name:16s} dt={row['dt']:.2f}s sub-steps={row['substeps']:3d}  {text}", flush=True)
-    load_end = os.getloadavg() if hasattr(os, "getloadavg") else (float("nan"),) * 3
-    command = "python benchmarks/bench_env_steps.py " + " ".join(argv if argv is not None else sys.argv[1:])
     lines = [
         "# Raw env throughput of the simulated tasks",
         "",
-        f"Command: `{command.strip()}`  ",
-        f"Machine: {platform.processor() or platform.machine()}, {os.cpu_count()} cores (shared with other jobs), "
-        f"load average (1/5/15 min) {load[0]:.1f}/{load[1]:.1f}/{load[2]:.1f} at the start, "
-        f"{load_end[0]:.1f}/{load_end[1]:.1f}/{load_end[2]:.1f} at the end; Python {platform.python_version()}  ",
+        f"Command: `{command_line(__file__, argv)}`  ",
+        f"{machine_line(load)}  ",
         f"Uniform random actions, {args.steps} steps per repeat, resets included, each repeat in a fresh process; "
         f"median of {args.repeats} repeats (min-max in brackets). steps/CPU-s uses the process's CPU time "
         "(comparable across loads); steps/wall-s is what a run on this shared machine saw.",
@@ -176,9 +175,7 @@ def main(argv: list[str] | None = None) -> None:
     lines += ["", "Sub-steps: RK4 sub-steps per control step for the ODE tasks, MuJoCo physics steps "
               "(action repeat) for dmc-cartpole. First step: CPU seconds of a process's first env step, left out "
               "of the rates (one-off work such as the unicycle's numba compilation)."]
-    args.out.parent.mkdir(parents=True, exist_ok=True)
-    args.out.write_text("\n".join(lines) + "\n")
-    print(f"wrote {args.out}")
+    write_report(lines, args.out)
 
 
 if __name__ == "__main__":

@@ -20,8 +20,6 @@ count; a torch.profiler breakdown at n = 300; and writes ``results/benchmarks/ob
 from __future__ import annotations
 
 import argparse
-import os
-import platform
 import sys
 import time
 from collections import Counter
@@ -33,6 +31,7 @@ import torch
 ROOT = Path(__file__).resolve().parents[1]
 sys.path.insert(0, str(ROOT))
 
+from benchmarks.report_file import command_line, load_average, machine_line, write_report  # noqa: E402
 from harness.task import SaturatingCost  # noqa: E402
 from plugins.pilco.controllers import RBFController, SquashedController  # noqa: E402
 from plugins.pilco.gp import full_posterior  # noqa: E402
@@ -180,7 +179,7 @@ def main() -> None:
 
     configs = {"full n=100": (100, None), "full n=300": (300, None), "FITC n=1000, 300 pseudo": (1000, 300)}
     objectives = {name: make_objective(dynamics_posterior(n, m)) for name, (n, m) in configs.items()}
-    load_before = os.getloadavg()
+    load_before = load_average()
     rows = []
     for threads in args.threads:
         torch.set_num_threads(threads)
@@ -192,20 +191,16 @@ def main() -> None:
             r = best_round(per_round[name])
             rows.append((name, threads, r))
             print(f"{name:26s} threads={threads}  J+dJ wall {r['wall']:7.1f} ms (min {r['wall_min']:7.1f}, worst round {r['wall_worst']:7.1f})  cpu {r['cpu']:7.1f} ms  J only {r['fwd']:7.1f} ms", flush=True)
-    load_after = os.getloadavg()
 
     torch.set_num_threads(1)
     ops = {name: count_ops(obj) for name, obj in objectives.items()}
     prof = [] if args.no_profile else profile_table(objectives["full n=300"])
 
-    command = ".venv/bin/python benchmarks/bench_objective.py " + " ".join(sys.argv[1:])
     lines = [
         "# PILCO objective: one J(theta) + dJ/dtheta evaluation (cart-pole setting)",
         "",
-        f"Command: `{command.strip()}`  ",
-        f"Date: {time.strftime('%Y-%m-%d %H:%M:%S UTC', time.gmtime())}; torch {torch.__version__}; "
-        f"{platform.processor() or platform.machine()}, {os.cpu_count()} CPUs; "
-        f"load average before/after: {load_before[0]:.1f} / {load_after[0]:.1f} (shared machine).",
+        f"Command: `{command_line(__file__)}`  ",
+        machine_line(load_before),
         "",
         "Setting: D = 4, GP inputs 6 (x, xdot, thetadot, sin, cos, u), E = 4, T = 40, RBF policy with "
         "50 centres (305 parameters) + trapezoidal squash, saturating tip cost; float64; "
@@ -256,11 +251,7 @@ def main() -> None:
     ]
     if prof:
         lines += ["## Where the time goes (full n = 300, 1 thread, torch.profiler)", ""] + prof + [""]
-    text = "\n".join(lines)
-    Path(args.out).parent.mkdir(parents=True, exist_ok=True)
-    Path(args.out).write_text(text + "\n")
-    print()
-    print(text)
+    write_report(lines, args.out)
 
 
 if __name__ == "__main__":

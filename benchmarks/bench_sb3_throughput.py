@@ -12,13 +12,18 @@ from __future__ import annotations
 
 import argparse
 import os
-import platform
+import sys
 import time
+from pathlib import Path
 
 os.environ.setdefault("OMP_NUM_THREADS", "1")
 
 import numpy as np  # noqa: E402
 
+ROOT = Path(__file__).resolve().parents[1]
+sys.path.insert(0, str(ROOT))
+
+from benchmarks.report_file import command_line, load_average, machine_line, write_report  # noqa: E402
 from harness.discovery import load_task  # noqa: E402
 from harness.interaction import Interaction  # noqa: E402
 from plugins.sb3_learners import PPOLearner, SACLearner, make_agent_env  # noqa: E402
@@ -85,14 +90,8 @@ def main() -> None:
 
     cases = [c for c in CASES if not args.quick or c[1] == "cartpole"]
     tasks = sorted({c[1] for c in cases})
+    load_at_start = load_average()
     lines = [
-        "# Environment steps per second inside stable-baselines3",
-        "",
-        f"Command: `.venv/bin/python benchmarks/bench_sb3_throughput.py{' --quick' if args.quick else ''} --out <this file>`",
-        "",
-        f"Machine: {platform.machine()}, {os.cpu_count()} cores (shared with other jobs), load average "
-        f"{', '.join(f'{x:.1f}' for x in os.getloadavg())} at the start; torch threads 1. Single run per row.",
-        "",
         "## Raw environment (zero action, no learner)",
         "",
         "| task | steps per wall s | steps per CPU s |",
@@ -117,11 +116,9 @@ def main() -> None:
         opts = " ".join(f"{k}={v}" for k, v in options.items()) or "(preset)"
         print(f"{learner_cls.name} {task_name} {opts}: {rate:.1f} steps/s wall, {cpu_rate:.1f} per CPU s", flush=True)
         lines.append(f"| {learner_cls.name} | {task_name} | {opts} | {net} | {sched} | {steps} | {rate:,.1f} | {cpu_rate:,.1f} |")
-    lines.append("")
-    lines.append(f"Load average at the end: {', '.join(f'{x:.1f}' for x in os.getloadavg())}.")
-    if args.out:
-        with open(args.out, "w") as fh:
-            fh.write("\n".join(lines) + "\n")
+    header = ["# Environment steps per second inside stable-baselines3", "", f"Command: `{command_line(__file__)}`  ",
+              f"{machine_line(load_at_start)} One torch thread; a single run per row.", ""]
+    write_report(header + lines, args.out)
 
 
 if __name__ == "__main__":

@@ -35,12 +35,15 @@ import os
 import statistics
 import subprocess
 import sys
-import time
 from pathlib import Path
 
 import numpy as np
 
 ROOT = Path(__file__).resolve().parents[1]
+sys.path.insert(0, str(ROOT))  # for benchmarks.report_file; the measured code is imported by the child processes
+
+from benchmarks.report_file import command_line, load_average, machine_line, write_report  # noqa: E402
+
 CONFIGS = {"full n=100": (100, None), "full n=300": (300, None), "FITC n=1000, 300 pseudo": (1000, 300)}
 TASK_FILE = ROOT / "benchmarks" / "task_objectives.py"
 
@@ -134,7 +137,7 @@ def main() -> None:
         configs = {name: json.dumps([n, pseudo]) for name, (n, pseudo) in CONFIGS.items()}
     out = args.out or str(ROOT / "results" / "benchmarks" / f"objective_gradient_before_after{'_tasks' if args.tasks else ''}.md")
 
-    load_before = os.getloadavg()
+    load_before = load_average()
     results = {name: {side: [] for side in sides} for name in configs}
     for _ in range(args.rounds):
         for name, config in configs.items():
@@ -142,17 +145,14 @@ def main() -> None:
                 results[name][side].append(run_child(root, config, args.repeats))
                 r = results[name][side][-1]
                 print(f"{name:26s} {side:6s} wall {r['wall']:7.1f} ms  cpu {r['cpu']:7.1f} ms", flush=True)
-    load_after = os.getloadavg()
 
-    command = ".venv/bin/python benchmarks/compare_objective.py " + " ".join(sys.argv[1:])
     lines = [
         "# PILCO objective J + dJ: before / after, side by side ("
         + ("the learner's objective at the unicycle's and the cart-double-pendulum's sizes, benchmarks/task_objectives.py)" if args.tasks
            else "cart-pole setting of bench_objective.py)"),
         "",
-        f"Command: `{command.strip()}`  ",
-        f"Date: {time.strftime('%Y-%m-%d %H:%M:%S UTC', time.gmtime())}; load average before/after: "
-        f"{load_before[0]:.1f} / {load_after[0]:.1f} (shared 2-CPU machine; prefer CPU time and ratios).  ",
+        f"Command: `{command_line(__file__)}`  ",
+        f"{machine_line(load_before)} Prefer CPU time and ratios.  ",
         f"before = `{sides['before']}` ({_commit(sides['before'])}), after = `{sides['after']}` ({_commit(sides['after'])}); "
         f"{args.rounds} rounds x {args.repeats} "
         "evaluations per side and configuration, alternating subprocesses, 1 torch thread; medians.",
@@ -175,11 +175,7 @@ def main() -> None:
             f"| {med['before']['peak_growth_mb']:.0f} / {med['after']['peak_growth_mb']:.0f} | {rel_j:.1e} | {rel_g:.1e} | {max_g:.1e} "
             f"| {b['ulp_rel_j']:.1e}, {b['ulp_rel_g']:.1e} |"
         )
-    text = "\n".join(lines) + "\n"
-    Path(out).parent.mkdir(parents=True, exist_ok=True)
-    Path(out).write_text(text)
-    print()
-    print(text)
+    write_report(lines, out)
 
 
 if __name__ == "__main__":

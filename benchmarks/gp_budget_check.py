@@ -44,6 +44,7 @@ ROOT = Path(__file__).resolve().parents[1]
 sys.path.insert(0, str(ROOT))
 
 from benchmarks.pilco_prediction_check import real_costs  # noqa: E402
+from benchmarks.report_file import command_line, write_report  # noqa: E402
 from harness.errors import exit_on_error  # noqa: E402
 from harness.evaluation import Evaluator  # noqa: E402
 from plugins.pilco.gp import GPModel  # noqa: E402
@@ -153,10 +154,9 @@ def main(argv: list[str] | None = None) -> None:
                     fit_and_score(f"{label} from the run's trial-{k - 1} GP, {what}", seed, fitc_evals, subset,
                                   warm.hyperparameters, refresh)
 
-    command = "python benchmarks/gp_budget_check.py " + " ".join(argv if argv is not None else sys.argv[1:])
     lines = [
         f"# GP training budget check: {params['learner']} on {params['task']}, run `{args.run_id}`", "",
-        f"Command: `OMP_NUM_THREADS=1 {command.strip()}`  ",
+        f"Command: `{command_line(__file__, argv, env='OMP_NUM_THREADS=1')}`  ",
         f"Run options: {', '.join(f'{key}={v}' for key, v in sorted(params.items()) if key.startswith(('task.', 'learner.gp_'))) or 'defaults'}.", "",
         f"Trained on the run's first {k} episodes ({len(x_train)} transitions; FITC with {num_pseudo} pseudo-inputs above "
         f"{threshold} points), scored on its remaining {len(episodes) - k} episodes ({len(x_test)} transitions). "
@@ -169,11 +169,7 @@ def main(argv: list[str] | None = None) -> None:
     ]
     lines += [f"| {label} | {seed} | {cpu} | {nlpd:.3f} | {smse:.4f} | {J:.2f} | {J - real:+.2f} |"
               for label, seed, cpu, nlpd, smse, J in rows]
-    args.out.mkdir(parents=True, exist_ok=True)
-    out = args.out / f"gp_budget_check_{params['task']}_{args.run_id[:8]}_seeds{'-'.join(map(str, args.seeds))}{'_warm' if args.warm_start else ''}.md"
-    out.write_text("\n".join(lines) + "\n")
-    print("\n".join(lines))
-    print(f"wrote {out}")
+    write_report(lines, args.out / f"gp_budget_check_{params['task']}_{args.run_id[:8]}_seeds{'-'.join(map(str, args.seeds))}{'_warm' if args.warm_start else ''}.md")
 
 
 if __name__ == "__main__":

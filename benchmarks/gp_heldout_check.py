@@ -30,6 +30,7 @@ ROOT = Path(__file__).resolve().parents[1]
 sys.path.insert(0, str(ROOT))
 
 from benchmarks.gp_budget_check import one_step_scores  # noqa: E402
+from benchmarks.report_file import command_line, write_report  # noqa: E402
 from harness.errors import exit_on_error  # noqa: E402
 from plugins.pilco.learner import transitions  # noqa: E402
 from plugins.pilco.saved_run import SavedPilcoRun  # noqa: E402
@@ -93,10 +94,9 @@ def main(argv: list[str] | None = None) -> None:
 
     if not rows:
         sys.exit("no GP scored: none of the runs has a GP of the asked trials")
-    command = "OMP_NUM_THREADS=1 python benchmarks/gp_heldout_check.py " + " ".join(argv if argv is not None else sys.argv[1:])
     lines = [
         f"# The GPs PILCO runs planned with, on one held-out set ({test_task})", "",
-        f"Command: `{command.strip()}`  ",
+        f"Command: `{command_line(__file__, argv, env='OMP_NUM_THREADS=1')}`  ",
         f"Test set: episodes {first}-{last} of run `{test_run[:8]}` ({n_test} transitions). NLPD in nats per transition "
         "(summed over the state dimensions; lower is better); SMSE averaged over the state dimensions.", "",
         "| run | seed | GP options | trial | points | GP | NLPD | SMSE |",
@@ -104,11 +104,7 @@ def main(argv: list[str] | None = None) -> None:
     ]
     lines += [f"| `{r}` | {s} | {lab} | {t} | {n} | {kind} | {nlpd:.3f} | {smse:.4f} |"
               for r, s, lab, t, n, kind, nlpd, smse in rows]
-    text = "\n".join(lines) + "\n"
-    print(text)
-    if args.out is not None:
-        args.out.write_text(text)
-        print(f"wrote {args.out}")
+    write_report(lines, args.out)
 
 
 if __name__ == "__main__":

@@ -32,6 +32,7 @@ import torch
 ROOT = Path(__file__).resolve().parents[1]
 sys.path.insert(0, str(ROOT))
 
+from benchmarks.report_file import command_line, write_report  # noqa: E402
 from harness.errors import exit_on_error  # noqa: E402
 from harness.evaluation import Evaluator  # noqa: E402
 from plugins.pilco.learner import linear_policy_from_gain  # noqa: E402
@@ -93,11 +94,10 @@ def main(argv: list[str] | None = None) -> None:
         c, smp, r, ok = check(linear_policy_from_gain(spec, *riding_lqr(task, speed)))
         references.append((f"riding LQR {speed:g} m/s", c.sum(), smp.sum(), r.sum(), ok))
 
-    command = "python benchmarks/pilco_prediction_check.py " + " ".join(argv if argv is not None else sys.argv[1:])
     steps = sorted({1, 2, 5, 10, 15, 20, 30, 40, 50, horizon} & set(range(1, horizon + 1)))
     lines = [
         f"# Prediction check: {params['learner']} on {params['task']}, run `{args.run_id}`, trial {trial}", "",
-        f"Command: `{command.strip()}`  ",
+        f"Command: `{command_line(__file__, argv)}`  ",
         f"Task options: {', '.join(f'{k[5:]}={v}' for k, v in sorted(params.items()) if k.startswith('task.')) or 'defaults'}; "
         f"GP on {int(saved['gp']['inputs'].shape[0])} points; planning horizon {horizon}.", "",
         "Expected cost of the policy handed over at this trial, per predicted step: **closed form** = PILCO's "
@@ -114,11 +114,7 @@ def main(argv: list[str] | None = None) -> None:
                   "| policy | closed form | sampled (same model) | real | real success |", "|---|---|---|---|---|",
                   f"| learned (trial {trial}) | {closed.sum():.2f} | {sampled.sum():.2f} | {real.sum():.2f} | {100 * success:.1f} % |"]
         lines += [f"| {n} | {c:.2f} | {smp:.2f} | {r:.2f} | {100 * ok:.1f} % |" for n, c, smp, r, ok in references]
-    args.out.mkdir(parents=True, exist_ok=True)
-    out = args.out / f"prediction_check_{params['task']}_{args.run_id[:8]}_t{trial}.md"
-    out.write_text("\n".join(lines) + "\n")
-    print("\n".join(lines))
-    print(f"wrote {out}")
+    write_report(lines, args.out / f"prediction_check_{params['task']}_{args.run_id[:8]}_t{trial}.md")
 
 
 if __name__ == "__main__":

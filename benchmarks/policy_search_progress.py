@@ -20,7 +20,6 @@ from __future__ import annotations
 
 import argparse
 import math
-import shlex
 import sys
 import time
 from pathlib import Path
@@ -31,6 +30,7 @@ import torch
 ROOT = Path(__file__).resolve().parents[1]
 sys.path.insert(0, str(ROOT))
 
+from benchmarks.report_file import command_line, write_report  # noqa: E402
 from harness.discovery import load_task  # noqa: E402
 from harness.errors import exit_on_error  # noqa: E402
 from harness.interaction import Interaction  # noqa: E402
@@ -123,11 +123,10 @@ def main() -> None:
 
     task_slug = args.task
     out = Path(args.out) if args.out else ROOT / "results" / "benchmarks" / f"policy_search_progress_{task_slug}.md"
-    command = "OMP_NUM_THREADS=1 python benchmarks/policy_search_progress.py " + " ".join(shlex.quote(a) for a in sys.argv[1:])
     lines = [
         f"# One PILCO policy search on `{args.task}`: J(theta) against J+dJ evaluations",
         "",
-        f"Command: `{command}`  ",
+        f"Command: `{command_line(__file__, env='OMP_NUM_THREADS=1')}`  ",
         f"Date: {time.strftime('%Y-%m-%d %H:%M UTC', time.gmtime())}. Situation: the learner's first policy search "
         f"(preset random rollouts{'' if args.rollouts is None else f' x {args.rollouts}'}, GP fitted as in the learner, "
         "fresh preset controller); every configuration starts from the same theta and model.",
@@ -146,8 +145,7 @@ def main() -> None:
               "|---|---|---|---|---|---|---|---|---|"]
     for seed, name, n, jb, ja, it, ev, cpu, msg in rows:
         lines.append(f"| {seed} | {name} | {n} | {jb:.2f} | {ja:.2f} | {it} | {ev} | {cpu:.0f} | {msg} |")
-    out.parent.mkdir(parents=True, exist_ok=True)
-    out.write_text("\n".join(lines) + "\n")
+    write_report(lines, out)
 
     import matplotlib
 
@@ -162,7 +160,7 @@ def main() -> None:
     ax.legend(fontsize=8)
     fig.tight_layout()
     fig.savefig(out.with_suffix(".png"))
-    print(f"wrote {out} and {out.with_suffix('.png')}")
+    print(f"wrote {out.with_suffix('.png')}")
 
 
 if __name__ == "__main__":

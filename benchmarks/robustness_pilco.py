@@ -12,15 +12,19 @@ from __future__ import annotations
 
 import argparse
 import collections
-import platform
+import sys
 import time
 import traceback
 from pathlib import Path
 
 import torch
 
-from harness.runner import RunConfig, run
-from harness.tracking import MemoryTracker
+ROOT = Path(__file__).resolve().parents[1]
+sys.path.insert(0, str(ROOT))
+
+from benchmarks.report_file import command_line, machine_line, write_report  # noqa: E402
+from harness.runner import RunConfig, run  # noqa: E402
+from harness.tracking import MemoryTracker  # noqa: E402
 
 
 def main() -> None:
@@ -59,9 +63,8 @@ def main() -> None:
     lines = [
         f"# {args.learner} numerical robustness on {args.task}: {len(crashes)} of {args.seeds} seeds crashed",
         "",
-        f"Command: `python benchmarks/robustness_pilco.py --seeds {args.seeds} --trials {args.trials} "
-        + " ".join(f"--set {a}" for a in args.assignments) + (f" --out {args.out}" if args.out else "") + "`  ",
-        f"Machine: {platform.machine()}, torch {torch.__version__}, 1 thread; wall {time.time() - start:.0f} s.",
+        f"Command: `{command_line(__file__)}`  ",
+        f"{machine_line()} One torch thread; wall {time.time() - start:.0f} s.",
         "",
         "| seeds | trials run | runs that crashed | policy searches that fell back to the previous policy | line-search back-offs (non-finite J) | solved within the budget |",
         "|---|---|---|---|---|---|",
@@ -70,11 +73,7 @@ def main() -> None:
     ]
     if crashes:
         lines += ["Crashes:", ""] + [f"- seed {s}: {msg}" for s, msg in crashes] + ["", f"By type: {dict(kinds)}"]
-    text = "\n".join(lines) + "\n"
-    print(text)
-    if args.out:
-        args.out.parent.mkdir(parents=True, exist_ok=True)
-        args.out.write_text(text)
+    write_report(lines, args.out)
 
 
 if __name__ == "__main__":

@@ -25,6 +25,10 @@ from datetime import datetime, timezone
 from pathlib import Path
 
 ROOT = Path(__file__).resolve().parents[1]
+sys.path.insert(0, str(ROOT))
+
+from benchmarks.report_file import write_report  # noqa: E402
+
 OUT = ROOT / "results" / "baselines"
 DEFAULT_URI = f"sqlite:///{ROOT / 'results' / 'runs' / 'mlflow.db'}"
 FIELDS = [
@@ -109,7 +113,7 @@ def summarise(task: str) -> Path:
     if notes.exists():
         lines += ["## Notes", "", notes.read_text().strip(), ""]
     md = OUT / f"sb3_{task}.md"
-    md.write_text("\n".join(lines))
+    write_report(lines, md, echo=False)
     return md
 
 
@@ -136,7 +140,7 @@ def main() -> None:
             row = run_one(args.learner, args.task, seed, args.budget_seconds, args.sets, args.tracking_uri)
             append(row, OUT / f"sb3_{args.task}.csv")
             print({k: row.get(k) for k in ("learner", "seed", "solved", "interaction_time_to_success", "interaction_seconds", "wall_seconds", "stop_reason")}, flush=True)
-    print(summarise(args.task))
+    summarise(args.task)
     sys.exit(0)
 
 

@@ -34,6 +34,7 @@ import torch
 ROOT = Path(__file__).resolve().parents[1]
 sys.path.insert(0, str(ROOT))
 
+from benchmarks.report_file import command_line, write_report  # noqa: E402
 from harness.errors import CheckpointError, exit_on_error  # noqa: E402
 from harness.evaluation import Evaluator  # noqa: E402
 from harness.task import Episode  # noqa: E402
@@ -120,11 +121,10 @@ def main(argv: list[str] | None = None) -> None:
 
     if not rows:
         sys.exit("no policy tested: none of the runs has a policy of the asked trials")
-    command = "OMP_NUM_THREADS=1 python benchmarks/swingup_failure_modes.py " + " ".join(argv if argv is not None else sys.argv[1:])
     quarter_steps = [s for s, _ in rows[0][4]["median_distance"]]
     lines = [
         f"# How PILCO's swing-up policies fail ({task_name})", "",
-        f"Command: `{command.strip()}`  ",
+        f"Command: `{command_line(__file__, argv, env='OMP_NUM_THREADS=1')}`  ",
         f"Test: {args.episodes} episodes of {steps} steps from the task's initial distribution (seed {args.seed}, the same "
         f"initial states for every policy). Success: tip within {radius * 100:.0f} cm of upright for {hold} consecutive steps. "
         f"Wall time {time.perf_counter() - start:.0f} s.", "",
@@ -140,11 +140,7 @@ def main(argv: list[str] | None = None) -> None:
         dist = ", ".join(f"{d:.2f}" for _, d in found["median_distance"])
         lines.append(f"| `{run_id}` | {seed} | {trial} | {own or '–'} | {c['success']}/{n} ({100 * low:.0f}–{100 * high:.0f} %) "
                      f"| {c['never reached']} | {c['reached, fell away']} | {c['reached, cut off']} | {entry} | {dist} |")
-    text = "\n".join(lines) + "\n"
-    print(text)
-    if args.out is not None:
-        args.out.write_text(text)
-        print(f"wrote {args.out}")
+    write_report(lines, args.out)
 
 
 if __name__ == "__main__":

@@ -25,6 +25,7 @@ import numpy as np
 ROOT = Path(__file__).resolve().parents[1]
 sys.path.insert(0, str(ROOT))
 
+from benchmarks.report_file import command_line, write_report  # noqa: E402
 from harness.evaluation import Evaluator  # noqa: E402
 from plugins.pilco.learner import linear_policy_from_gain  # noqa: E402
 from tasks.unicycle import Unicycle  # noqa: E402
@@ -50,10 +51,9 @@ def main(argv: list[str] | None = None) -> None:
             rows.append((init, name, result.success_rate, falls, result.mean_cost))
             print(f"{init:5s} {name:22s} success {100 * result.success_rate:5.1f} %  falls {100 * falls:5.1f} %  "
                   f"cost {result.mean_cost:5.1f}  ({time.perf_counter() - start:.0f} s)", flush=True)
-    command = "python benchmarks/unicycle_linear_ceiling.py " + " ".join(argv if argv is not None else sys.argv[1:])
     lines = [
         "# Unicycle: what a linear policy reaches (riding LQRs as PILCO's squashed linear controller)", "",
-        f"Command: `{command.strip()}`  ",
+        f"Command: `{command_line(__file__, argv)}`  ",
         f"{args.episodes} evaluation episodes per row (seeds 100000 + i, measurement noise on), the task's success rule "
         "(no fall in 10 s and the top within 0.10 m of upright at the end); cost = evaluation cost over the 67-step "
         "horizon with a fall held to the end (max 67). The ICML paper reports ~93 % success for PILCO's learned "
@@ -64,9 +64,7 @@ def main(argv: list[str] | None = None) -> None:
     lines += ["", "Upright and at rest neither torque enters the roll acceleration to first order (tests in "
               "`tests/tasks/test_unicycle.py`), so a linear policy can only balance about a moving equilibrium: "
               "the LQRs ride straight at the given speed (`tasks/unicycle_lqr.py`)."]
-    args.out.parent.mkdir(parents=True, exist_ok=True)
-    args.out.write_text("\n".join(lines) + "\n")
-    print(f"wrote {args.out}")
+    write_report(lines, args.out)
 
 
 if __name__ == "__main__":

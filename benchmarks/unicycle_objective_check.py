@@ -59,6 +59,7 @@ import torch
 ROOT = Path(__file__).resolve().parents[1]
 sys.path.insert(0, str(ROOT))
 
+from benchmarks.report_file import command_line, write_report  # noqa: E402
 from harness.discovery import load_task  # noqa: E402
 from harness.errors import NumericalError, exit_on_error  # noqa: E402
 from benchmarks.pilco_prediction_check import held_costs  # noqa: E402
@@ -275,12 +276,11 @@ def main(argv: list[str] | None = None) -> None:
                   f"evaluations ({seconds:.0f} s; {search.message}); real success {100 * summary['success']:.0f} %", flush=True)
 
     # ---- report ------------------------------------------------------------------------------------
-    command = "OMP_NUM_THREADS=1 python benchmarks/unicycle_objective_check.py " + " ".join(argv if argv is not None else sys.argv[1:])
     hcols = " | ".join(f"J({h}) MM | J({h}) MC" for h in horizons)
     rcols = " | ".join(f"real cost({h})" for h in horizons)
     lines = [
         "# Unicycle: PILCO's own objective J(theta), learned linear policy vs riding LQRs", "",
-        f"Command: `{command.strip()}`  ",
+        f"Command: `{command_line(__file__, argv, env='OMP_NUM_THREADS=1')}`  ",
         f"Run `{args.run_id}` ({params['learner']} on {params['task']}, task options "
         f"{', '.join(f'{k[5:]}={v}' for k, v in sorted(params.items()) if k.startswith('task.'))}; learner options "
         f"planning_horizon={params.get('learner.planning_horizon')}, grow_horizon_below={params.get('learner.grow_horizon_below')}, "
@@ -341,10 +341,7 @@ def main(argv: list[str] | None = None) -> None:
                 f"{s['seconds']:.0f} |")
         lines += ["", "scipy's messages: " + "; ".join(f"trial {s['trial']}, {s['speed']:g} m/s: {s['message']}" for s in searches)]
     lines += ["", f"Total wall time {time.perf_counter() - t_start:.0f} s (one thread)."]
-    args.out.parent.mkdir(parents=True, exist_ok=True)
-    args.out.write_text("\n".join(lines) + "\n")
-    print("\n".join(lines))
-    print(f"wrote {args.out}")
+    write_report(lines, args.out)
 
 
 if __name__ == "__main__":
