@@ -3,14 +3,15 @@
 Reads the sweeps' child runs (see :mod:`harness.sweep` for the layout) and writes into ``out``:
 
 * ``comparison_<task>.md`` / ``.csv``: learner x {solved seeds, median and IQM of interaction
-  time to success with 95 % stratified-bootstrap CIs, trials to success, wall time};
+  time to success with 95 % stratified-bootstrap CIs, trials to success, wall time, and the bounds
+  of the median with the row's stopped runs};
 * ``table1.md`` / ``.csv``: the paper's Table 1 (state dimension, trials, experience, policy
   parameters) measured, median [range], beside the paper's values;
 * ``fig5.png`` / ``fig5.csv``: interaction time to learn cart-pole, log axis, one bar per learner
   (and literature rows from ``literature_fig5.csv``, each with its source);
 * ``runs_<task>.md`` / ``.csv``: one row per counted run (seed, solved, time to success or the
   interaction at which it stopped unsolved, trials, wall time, stop reason, run id), then the
-  runs stopped before their limit, marked as such and in no statistic;
+  runs stopped before their limit, marked as such (in no statistic but the median's bounds);
 * ``curves_<task>.png`` / ``.csv``: evaluation success rate and cost vs interaction seconds
   (mean with band, and every run as a thin line); runs stopped before their limit get a row
   ``<label> (stopped)`` of their own, dashed, ending where they stopped;
@@ -60,7 +61,7 @@ import numpy as np
 
 from harness.errors import HarnessError, MissingArtifactsWarning
 from harness.provenance import PROCESS_TAG, process_alive
-from harness.statistics import bootstrap_ci, iqm, median, times_with_failures
+from harness.statistics import bootstrap_ci, iqm, median, median_bounds, times_with_failures
 from harness.sweep import ERROR_TAG, ROLE_TAG, SWEEP_EXPERIMENT, SWEEP_TAG, _search_all, format_seeds, parse_seeds
 
 #: bootstrap settings used for every CI in a report (seeded: the same store gives the same report)
@@ -395,9 +396,15 @@ def _range(values: Sequence[float]) -> tuple[float, float, float]:
     return float(np.median(arr)), float(arr.min()), float(arr.max())
 
 
-def comparison_row(task: str, label: str, runs: Sequence[RunRecord], reps: int = BOOTSTRAP_REPS, seed: int = BOOTSTRAP_SEED) -> dict[str, Any]:
-    """One learner on one task over its seeds; unsolved runs are +inf in the time statistics."""
+def comparison_row(task: str, label: str, runs: Sequence[RunRecord], reps: int = BOOTSTRAP_REPS, seed: int = BOOTSTRAP_SEED,
+                   stopped: Sequence[RunRecord] = ()) -> dict[str, Any]:
+    """One learner on one task over its seeds; unsolved runs are +inf in the time statistics.
+
+    ``stopped``: runs of the same row stopped before their limit, unsolved so far. They are in no
+    statistic but one: the bounds of the median over all runs (:func:`~harness.statistics.median_bounds`,
+    each stopped run needing at least the interaction it used)."""
     times = times_with_failures([r.solved for r in runs], [r.time_to_success for r in runs])
+    with_stopped = median_bounds(times, [r.interaction_seconds for r in stopped])
     solved = [r for r in runs if r.solved]
     unsolved = [r for r in runs if not r.solved]
     med_lo, med_hi = bootstrap_ci(times, median, reps=reps, seed=seed)
@@ -414,6 +421,9 @@ def comparison_row(task: str, label: str, runs: Sequence[RunRecord], reps: int =
         "median_time_to_success_s": float(median(times)),
         "median_ci_low_s": med_lo,
         "median_ci_high_s": med_hi,
+        "stopped": len(stopped),
+        "median_with_stopped_low_s": with_stopped[0] if stopped else math.nan,
+        "median_with_stopped_high_s": with_stopped[1] if stopped else math.nan,
         "iqm_time_to_success_s": float(iqm(times)),
         "iqm_ci_low_s": iqm_lo,
         "iqm_ci_high_s": iqm_hi,
@@ -458,7 +468,7 @@ def runs_markdown(task: str, rows: Sequence[dict[str, Any]]) -> str:
              "'> X' with X the interaction it used before it stopped (a lower bound, not a value). "
              "Trials = interaction episodes, initial random ones included. Wall = the run's own wall-clock time. "
              "Rows marked *stopped* are runs stopped before their limit (killed, or still running): they are "
-             "in no statistic and their '> X' is only how far they got.", "",
+             "in no statistic (but the bounds of the median in comparison_<task>.md) and their '> X' is only how far they got.", "",
              "| learner | seed | solved | time to success (s) | trials | interaction used (s) | wall (s) | stop | run |",
              "|---|---|---|---|---|---|---|---|---|"]
     for r in rows:
@@ -643,6 +653,16 @@ def _fmt_stat(point: float, low: float, high: float) -> str:
     return f"{point:.1f} [{fmt_seconds(low)}, {fmt_seconds(high)}]"
 
 
+def _fmt_bounds(low: float, high: float, stopped: int, finished: int) -> str:
+    """``'≥ 63.0 (2 stopped of 4)'``, ``'40.0–55.0 (…)'``, or ``'–'`` without stopped runs."""
+    if not stopped:
+        return "–"
+    runs = f"({stopped} stopped of {stopped + finished})"
+    if low == high:
+        return f"{fmt_seconds(low)} {runs}"
+    return f"≥ {fmt_seconds(low)} {runs}" if math.isinf(high) else f"{fmt_seconds(low)}–{fmt_seconds(high)} {runs}"
+
+
 def _num(value: float) -> str:
     """Integers as such (``305``), other numbers with one decimal (``1.5``)."""
     return f"{value:.0f}" if float(value).is_integer() else f"{value:.1f}"
@@ -663,15 +683,19 @@ STAT_NOTE = (
     "learner raised: 'errors') count as +∞, never dropped: a median is finite only if more than half "
     "of the runs solved, the IQM (mean of the middle 50 %) only if at most ⌊n/4⌋ runs are unsolved; "
     "'not reached' marks an infinite statistic. 95 % CIs: percentile bootstrap over seeds "
-    f"({BOOTSTRAP_REPS} resamples, seed {BOOTSTRAP_SEED}, order-statistic bounds). Trials to success "
+    f"({BOOTSTRAP_REPS} resamples, seed {BOOTSTRAP_SEED}, order-statistic bounds). Runs stopped before their "
+    "limit (killed, or still running) are in no statistic but the last column: the lowest and highest median "
+    "over all runs, a stopped run counted as solved at the interaction it had used (lowest) or never (highest); "
+    "'≥ X' when the highest is ∞. Trials to success "
     "= interaction episodes, initial random ones included, over the solved runs: median [min–max]."
 )
 
 
 def comparison_markdown(task: str, rows: Sequence[dict[str, Any]]) -> str:
     lines = [f"## {task}", "", STAT_NOTE, "",
-             "| learner | solved | median time to success [95 % CI] (s) | IQM [95 % CI] (s) | trials to success | unsolved at (s) | wall time (s) | errors |",
-             "|---|---|---|---|---|---|---|---|"]
+             "| learner | solved | median time to success [95 % CI] (s) | IQM [95 % CI] (s) | trials to success | unsolved at (s) "
+             "| wall time (s) | errors | median with the stopped runs (s) |",
+             "|---|---|---|---|---|---|---|---|---|"]
     for r in rows:
         censored = "–" if math.isnan(r["unsolved_interaction_min_s"]) else (
             f"{r['unsolved_interaction_min_s']:.1f}" if r["unsolved_interaction_min_s"] == r["unsolved_interaction_max_s"]
@@ -681,7 +705,8 @@ def comparison_markdown(task: str, rows: Sequence[dict[str, Any]]) -> str:
             f"| {_fmt_stat(r['median_time_to_success_s'], r['median_ci_low_s'], r['median_ci_high_s'])} "
             f"| {_fmt_stat(r['iqm_time_to_success_s'], r['iqm_ci_low_s'], r['iqm_ci_high_s'])} "
             f"| {_fmt_range(r['trials_to_success_median'], r['trials_to_success_min'], r['trials_to_success_max'])} "
-            f"| {censored} | {_fmt_range(r['wall_seconds_median'], r['wall_seconds_min'], r['wall_seconds_max'], fmt=_seconds)} | {r['errors']} |"
+            f"| {censored} | {_fmt_range(r['wall_seconds_median'], r['wall_seconds_min'], r['wall_seconds_max'], fmt=_seconds)} | {r['errors']} "
+            f"| {_fmt_bounds(r['median_with_stopped_low_s'], r['median_with_stopped_high_s'], r['stopped'], r['runs'])} |"
         )
     return "\n".join(lines) + "\n"
 
@@ -854,16 +879,17 @@ def make_report(
     out.mkdir(parents=True, exist_ok=True)
     written: list[Path] = []
     by_task = groups(data.runs)
+    stopped_by_task = groups(data.incomplete)
 
     all_rows: list[dict[str, Any]] = []
     for task, by_label in by_task.items():
-        rows = [comparison_row(task, label, runs) for label, runs in by_label.items()]
+        stopped = stopped_by_task.get(task, {})
+        rows = [comparison_row(task, label, runs, stopped=stopped.get(label, ())) for label, runs in by_label.items()]
         all_rows += rows
         md = out / f"comparison_{task}.md"
         md.write_text(comparison_markdown(task, rows))
         written += [md, write_csv(out / f"comparison_{task}.csv", rows)]
 
-    stopped_by_task = groups(data.incomplete)
     for task in dict.fromkeys([*by_task, *stopped_by_task]):
         rows = [row for label, runs in by_task.get(task, {}).items() for row in run_rows(task, label, runs)]
         rows += [row for label, runs in stopped_by_task.get(task, {}).items() for row in run_rows(task, label, runs, counted=False)]

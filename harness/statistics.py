@@ -81,6 +81,25 @@ def bootstrap_ci(
     return low, high
 
 
+def median_bounds(times: Sequence[float], stopped_at: Sequence[float]) -> tuple[float, float]:
+    """The lowest and highest median of ``times`` together with runs cut short: ``(low, high)``.
+
+    ``times``: finished runs' times to success (``+inf`` = unsolved at its limit), ``(n,)``;
+    ``stopped_at``: runs stopped before their limit and unsolved so far, each known only to need at
+    least this much interaction, ``(m,)``. The median of all ``n + m`` runs is lowest if every
+    stopped run would have solved at once (its time = ``stopped_at``) and highest if none ever
+    would (``+inf``); both bounds are attained, and both equal :func:`median` of ``times`` when
+    ``m = 0``. NaN if there is no run at all.
+    """
+    finished = np.asarray(times, dtype=np.float64)
+    cut = np.asarray(stopped_at, dtype=np.float64)
+    if finished.size + cut.size == 0:
+        return float("nan"), float("nan")
+    low = float(median(np.concatenate([finished, cut])))
+    high = float(median(np.concatenate([finished, np.full(cut.size, np.inf)])))
+    return low, high
+
+
 def times_with_failures(solved: Sequence[bool], times: Sequence[float | None]) -> np.ndarray:
     """Times to success with every unsolved run as ``+inf`` (never dropped); ``(n,)``."""
     out = np.array([t if ok and t is not None else np.inf for ok, t in zip(solved, times)], dtype=np.float64)

@@ -16,9 +16,9 @@ from scipy import stats
 from harness import sweep
 from harness.cli import main
 from harness.errors import HarnessError, MissingArtifactsWarning
-from harness.report import (RunRecord, _label, comparison_row, copy_prediction_plot, file_slug, read_literature,
+from harness.report import (RunRecord, _label, comparison_markdown, comparison_row, copy_prediction_plot, file_slug, read_literature,
                             representative_run, run_rows, runs_markdown, table1_markdown, table1_rows, variant_labels)
-from harness.statistics import bootstrap_ci, iqm, median, stratified_bootstrap, times_with_failures
+from harness.statistics import bootstrap_ci, iqm, median, median_bounds, stratified_bootstrap, times_with_failures
 from harness.sweep import SweepSpec, run_sweep
 from harness.tracking import open_client
 from tests.harness import sweep_site
@@ -89,6 +89,31 @@ def test_comparison_row_counts_unsolved_and_errors():
     assert row["iqm_time_to_success_s"] == np.inf and row["median_ci_high_s"] == np.inf
     assert (row["trials_to_success_median"], row["trials_to_success_min"], row["trials_to_success_max"]) == (4.5, 4.0, 5.0)
     assert (row["unsolved_interaction_min_s"], row["unsolved_interaction_max_s"]) == (3.0, 40.0)
+
+
+def test_median_bounds_enumerate_what_the_stopped_runs_could_still_do():
+    """Independent check: every stopped run either solves at some time >= where it stopped or never; the
+    bounds are the smallest and largest median over a grid of such completions, and both are attained."""
+    finished, stopped_at = [90.0, 111.0, np.inf], [36.0, 18.0]
+    low, high = median_bounds(finished, stopped_at)
+    grid = [18.0, 36.0, 50.0, 90.0, 100.0, 111.0, 500.0, np.inf]
+    medians = [float(np.median(finished + [a, b])) for a in grid if a >= 36.0 for b in grid if b >= 18.0]
+    assert (low, high) == (min(medians), max(medians)) == (90.0, np.inf)
+    assert median_bounds([15.0, 20.0, 30.0], []) == (20.0, 20.0)
+    assert median_bounds([90.0, 111.0], [60.0, 63.0]) == (76.5, np.inf)  # >= 76.5: a 60 s target is missed already
+    assert median_bounds([10.0, 12.0, 14.0], [5.0]) == (11.0, 13.0)
+    assert all(math.isnan(v) for v in median_bounds([], []))
+
+
+def test_comparison_row_bounds_the_median_with_its_stopped_runs():
+    runs = [_record(0, True, 90.0, 30.0), _record(1, True, 111.0, 37.0)]
+    stopped = [_record(2, False, interaction=36.0, status="KILLED"), _record(3, False, interaction=18.0, status="KILLED")]
+    row = comparison_row("double-pendulum", "pilco", runs, reps=200, stopped=stopped)
+    assert row["median_time_to_success_s"] == 100.5 and row["runs"] == 2  # the statistics stay over finished runs
+    assert (row["stopped"], row["median_with_stopped_low_s"], row["median_with_stopped_high_s"]) == (2, 63.0, np.inf)
+    md = comparison_markdown("double-pendulum", [row, comparison_row("double-pendulum", "other", runs, reps=200)])
+    assert md.splitlines()[-2].endswith("| ≥ 63.0 (2 stopped of 4) |")
+    assert md.splitlines()[-1].endswith("| 0 | – |")
 
 
 def test_run_rows_give_unsolved_runs_a_lower_bound_not_a_value():
