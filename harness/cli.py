@@ -13,6 +13,7 @@ Heavy modules (mlflow, torch) are imported only by the commands that need them.
 
 from __future__ import annotations
 
+import os
 import sys
 from typing import Any
 
@@ -68,7 +69,6 @@ def main(debug: bool) -> None:
     ``harness.tasks``. Results go to MLflow (default: ./mlflow.db, no server needed).
     """
     _Context.debug = debug
-    import os
 
     from harness.interrupts import terminate_as_interrupt
 
@@ -155,10 +155,16 @@ def bench_command(
         resume = tracker.find_resumable(task, learner, seed)
         if resume is None:
             raise HarnessError(f"no unfinished run of {learner} on {task} with seed {seed} in {tracker.tracking_uri} to resume")
+    from harness.interrupts import STOP_AFTER_TRIAL, StopRequested
+
+    if not quiet and STOP_AFTER_TRIAL is not None:
+        click.echo(f"to stop (resumable): Ctrl-C or kill {os.getpid()} now; kill -{STOP_AFTER_TRIAL.name[3:]} {os.getpid()} "
+                   "after the trial in progress", err=True)
     try:
         result = run(config, tracker=tracker, progress=SilentProgress() if quiet else RichProgress(), resume_run_id=resume)
-    except KeyboardInterrupt:
-        click.echo(f"interrupted: run {tracker.run_id} marked KILLED; continue it with the same command plus --resume {tracker.run_id}", err=True)
+    except KeyboardInterrupt as stopped:
+        what = str(stopped) if isinstance(stopped, StopRequested) else "interrupted"
+        click.echo(f"{what}: run {tracker.run_id} marked KILLED; continue it with the same command plus --resume {tracker.run_id}", err=True)
         sys.exit(130)
     if quiet:
         click.echo(result.summary())

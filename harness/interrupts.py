@@ -1,4 +1,4 @@
-"""SIGTERM handled like Ctrl-C.
+"""SIGTERM handled like Ctrl-C; SIGUSR1 asks a run to stop once its trial in progress is stored.
 
 ``kill PID``, batch schedulers (SLURM's time limit) and container runtimes stop a process with
 SIGTERM. By default it ends Python at once, leaving the run RUNNING in the tracking store with no
@@ -7,6 +7,11 @@ instead, so it takes the Ctrl-C path: the runner marks the run KILLED (its last 
 checkpoint stays), the CLI prints the ``--resume`` command, a sweep driver stops its workers and
 marks its parent run KILLED. (A job started in the background by a non-interactive shell ignores
 SIGINT, so for it SIGTERM is the way to stop it cleanly.)
+
+SIGTERM stops a run at once: the trial in progress (for PILCO, minutes of policy search) is
+redone when the run is resumed. :data:`STOP_AFTER_TRIAL` (SIGUSR1, ``kill -USR1 PID``) asks
+for a stop after it instead: :func:`stop_requests` records the request, and the runner ends the
+run KILLED (resumable) once that trial's records and checkpoint are stored.
 """
 
 from __future__ import annotations
@@ -15,6 +20,14 @@ import signal
 import threading
 from collections.abc import Iterator
 from contextlib import contextmanager
+
+#: the signal that asks a run to stop after the trial in progress (None where the platform has no SIGUSR1)
+STOP_AFTER_TRIAL: signal.Signals | None = getattr(signal, "SIGUSR1", None)
+
+
+class StopRequested(KeyboardInterrupt):
+    """Raised by the runner after the trial in progress when :data:`STOP_AFTER_TRIAL` asked for a
+    stop; a ``KeyboardInterrupt``, so it takes the Ctrl-C path (run KILLED, resume hint)."""
 
 
 def _raise_interrupt(signum: int, frame) -> None:
@@ -69,3 +82,19 @@ def sigterm_handler_kept() -> Iterator[None]:
     yield
     if callable(previous):
         signal.signal(signal.SIGTERM, previous)
+
+
+@contextmanager
+def stop_requests() -> Iterator[threading.Event]:
+    """An event set when :data:`STOP_AFTER_TRIAL` arrives during the block; the handler in place
+    before is put back at its end. Off the main thread, or without SIGUSR1, the event is returned
+    but never set by a signal (the signal keeps its previous meaning)."""
+    requested = threading.Event()
+    if STOP_AFTER_TRIAL is None or not _on_main_thread():
+        yield requested
+        return
+    previous = signal.signal(STOP_AFTER_TRIAL, lambda signum, frame: requested.set())
+    try:
+        yield requested
+    finally:
+        signal.signal(STOP_AFTER_TRIAL, previous)

@@ -7,7 +7,7 @@ import signal
 
 import pytest
 
-from harness.interrupts import held_interrupts, terminate_as_interrupt
+from harness.interrupts import STOP_AFTER_TRIAL, StopRequested, held_interrupts, stop_requests, terminate_as_interrupt
 from harness.runner import RunConfig, run
 from harness.tracking import MemoryTracker
 from tests.harness.trackers import AtTrial
@@ -81,3 +81,38 @@ def test_sigterm_handler_kept_puts_the_application_handler_back():
     with sigterm_handler_kept():
         signal.signal(signal.SIGTERM, signal.SIG_DFL)  # what ray.init does to it
     assert signal.getsignal(signal.SIGTERM) is application
+
+
+class AskedToStopWhileWriting(AtTrial):
+    """Gets SIGUSR1 (stop after the trial in progress) while trial ``step``'s metrics are logged."""
+
+    def at_trial(self, metrics, step) -> None:
+        os.kill(os.getpid(), STOP_AFTER_TRIAL)
+        MemoryTracker.log_metrics(self, metrics, step)
+
+
+@pytest.mark.skipif(STOP_AFTER_TRIAL is None, reason="no SIGUSR1 on this platform")
+def test_sigusr1_stops_the_run_once_its_trial_is_stored_and_the_resume_loses_nothing():
+    config = RunConfig("random", "cartpole", seed=6, max_trials=5, eval_episodes=1)
+    reference = run(config)
+    before = signal.getsignal(STOP_AFTER_TRIAL)
+    tracker = AskedToStopWhileWriting(2)
+    with pytest.raises(StopRequested, match="stopped after trial 2 as asked"):
+        run(config, tracker=tracker)
+    assert signal.getsignal(STOP_AFTER_TRIAL) is before  # the run's handler is gone with it
+    assert tracker.status == "KILLED" and [s for s, _ in tracker.metrics["eval_cost"]] == [1, 2]
+    assert any(name.endswith("ckpt_trial002.pkl") for name in tracker.list_artifacts("checkpoints"))
+    resumed = run(config, tracker=tracker, resume_run_id=tracker.run_id)
+    assert tracker.status == "FINISHED" and [s for s, _ in tracker.metrics["eval_cost"]] == [1, 2, 3, 4, 5]
+    assert [r["eval_cost"] for r in resumed.history] == [r["eval_cost"] for r in reference.history]
+    assert resumed.interaction_seconds == reference.interaction_seconds
+
+
+@pytest.mark.skipif(STOP_AFTER_TRIAL is None, reason="no SIGUSR1 on this platform")
+def test_stop_requests_only_record_the_signal_inside_the_block():
+    with stop_requests() as requested:
+        assert not requested.is_set()
+        os.kill(os.getpid(), STOP_AFTER_TRIAL)
+        assert requested.is_set()  # and the process is still here: the default action would have ended it
+    with stop_requests() as again:
+        assert not again.is_set()

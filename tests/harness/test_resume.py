@@ -121,19 +121,40 @@ def test_sigkill_mid_trial_then_resume_matches_uninterrupted(tmp_path, mlflow_ur
         assert _metric_history(mlflow_uri, run_id, key) == _metric_history(mlflow_uri, ref_id, key), key
 
 
-def test_sigterm_marks_the_run_killed_and_prints_how_to_resume(tmp_path, mlflow_uri):
-    """`kill PID` on `harness bench`: the Ctrl-C path (run KILLED, resume command), not an abrupt end."""
+def _bench_stopped_by(signum: int, seed: int, tmp_path: Path, mlflow_uri: str) -> tuple[int, str, str]:
+    """A long `harness bench` (random learner) sent ``signum`` after its second trial: ``(exit code, output,
+    run id)``, the run being the only one of that seed in the store and KILLED."""
     import mlflow
 
-    args = ["bench", "-l", "random", "-t", "cartpole", "--seed", "21", "--max-trials", "5000", "--eval-episodes", "1",
+    args = ["bench", "-l", "random", "-t", "cartpole", "--seed", str(seed), "--max-trials", "5000", "--eval-episodes", "1",
             "--tracking-uri", mlflow_uri]
     with HarnessProcess(args, tmp_path) as proc:
         proc.wait_for("trial 2/5000", timeout=120)
-        proc.signal(signal.SIGTERM)
+        proc.signal(signum)
         code = proc.wait(timeout=60)
-        err = proc.output()
-    assert code == 130, err
+        output, pid = proc.output(), proc.proc.pid
     mlflow.set_tracking_uri(mlflow_uri)
-    runs = mlflow.search_runs(experiment_names=["cartpole"], filter_string="params.seed = '21' AND params.learner = 'random'")
-    assert len(runs) == 1 and runs.iloc[0]["status"] == "KILLED"
-    assert f"marked KILLED; continue it with the same command plus --resume {runs.iloc[0]['run_id']}" in err
+    runs = mlflow.search_runs(experiment_names=["cartpole"], filter_string=f"params.seed = '{seed}' AND params.learner = 'random'")
+    assert len(runs) == 1 and runs.iloc[0]["status"] == "KILLED", output
+    assert f"kill -USR1 {pid} after the trial in progress" in output
+    return code, output, runs.iloc[0]["run_id"]
+
+
+def test_sigterm_marks_the_run_killed_and_prints_how_to_resume(tmp_path, mlflow_uri):
+    """`kill PID` on `harness bench`: the Ctrl-C path (run KILLED, resume command), not an abrupt end."""
+    code, err, run_id = _bench_stopped_by(signal.SIGTERM, 21, tmp_path, mlflow_uri)
+    assert code == 130, err
+    assert f"interrupted: run {run_id} marked KILLED; continue it with the same command plus --resume {run_id}" in err
+
+
+def test_sigusr1_stops_bench_after_the_trial_in_progress_and_prints_how_to_resume(tmp_path, mlflow_uri):
+    """`kill -USR1 PID` on `harness bench`: the run ends KILLED once a trial is stored, its newest checkpoint is
+    that trial's, and nothing of a later trial was logged."""
+    from harness.tracking import open_client
+
+    code, err, run_id = _bench_stopped_by(signal.SIGUSR1, 23, tmp_path, mlflow_uri)
+    assert code == 130, err
+    client = open_client(mlflow_uri)
+    last = max(m.step for m in client.get_metric_history(run_id, "eval_cost"))
+    assert f"stopped after trial {last} as asked (SIGUSR1): run {run_id} marked KILLED; continue it with the same command plus --resume {run_id}" in err
+    assert max(a.path for a in client.list_artifacts(run_id, "checkpoints")) == f"checkpoints/ckpt_trial{last:03d}.pkl"
