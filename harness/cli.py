@@ -237,7 +237,8 @@ def sweep_command(
 
     Re-running the same command resumes the sweep: finished cells are skipped, interrupted ones
     continue from their last checkpoint, failed ones run again. Exits with status 1 if any cell
-    failed.
+    failed. `kill -USR1 PID` drains the sweep: no more cells start, running local cells stop
+    after their trial in progress (exit status 130).
     """
     from harness.options import parse_assignments
     from harness.sweep import RichSweepProgress, SilentSweepProgress, SweepSpec, parse_names, parse_seeds, run_sweep
@@ -261,12 +262,17 @@ def sweep_command(
     if quiet:
         for outcome in result.outcomes:
             click.echo(outcome.line())
-    counts = {s: len(result.with_status(s)) for s in ("finished", "skipped", "failed")}
+    counts = {s: len(result.with_status(s)) for s in ("finished", "skipped", "failed", "stopped")}
+    stopped = f", {counts['stopped']} stopped as asked, {result.not_started} not started" if result.stopped_early else ""
     click.echo(
         f"sweep {result.sweep_id}: {counts['finished']} finished, {counts['skipped']} skipped (finished before), "
-        f"{counts['failed']} failed; parent run {result.parent_run_id} in experiment 'sweeps' at {result.tracking_uri}"
+        f"{counts['failed']} failed{stopped}; parent run {result.parent_run_id} in experiment 'sweeps' at {result.tracking_uri}"
     )
     click.echo(f"  report: harness report --sweep {result.sweep_id} --tracking-uri {result.tracking_uri}")
+    if result.stopped_early:
+        click.echo("stopped as asked (SIGUSR1); re-run the same command to continue: stopped cells resume from their "
+                   "checkpoints, unstarted ones start", err=True)
+        sys.exit(130)
     if counts["failed"]:
         click.echo(f"error: {counts['failed']} cell(s) failed (see above); re-run the same command to retry them", err=True)
         sys.exit(1)

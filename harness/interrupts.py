@@ -11,7 +11,8 @@ SIGINT, so for it SIGTERM is the way to stop it cleanly.)
 SIGTERM stops a run at once: the trial in progress (for PILCO, minutes of policy search) is
 redone when the run is resumed. :data:`STOP_AFTER_TRIAL` (SIGUSR1, ``kill -USR1 PID``) asks
 for a stop after it instead: :func:`stop_requests` records the request, and the runner ends the
-run KILLED (resumable) once that trial's records and checkpoint are stored.
+run KILLED (resumable) once that trial's records and checkpoint are stored. A sweep driver
+asked this way starts no more cells and passes the request on to its running local cells.
 """
 
 from __future__ import annotations
@@ -84,12 +85,29 @@ def sigterm_handler_kept() -> Iterator[None]:
         signal.signal(signal.SIGTERM, previous)
 
 
+#: a stop request that came before any :func:`stop_requests` block (see :func:`catch_stop_requests_early`)
+_early_request = threading.Event()
+
+
+def catch_stop_requests_early() -> None:
+    """Record :data:`STOP_AFTER_TRIAL` in this process from now on, for the next
+    :func:`stop_requests` block to honour. For a process started to run a run (a sweep's cell):
+    the request may come while it is still importing, and the signal's default action would
+    end the process."""
+    if STOP_AFTER_TRIAL is not None and _on_main_thread():
+        signal.signal(STOP_AFTER_TRIAL, lambda signum, frame: _early_request.set())
+
+
 @contextmanager
 def stop_requests() -> Iterator[threading.Event]:
-    """An event set when :data:`STOP_AFTER_TRIAL` arrives during the block; the handler in place
-    before is put back at its end. Off the main thread, or without SIGUSR1, the event is returned
-    but never set by a signal (the signal keeps its previous meaning)."""
+    """An event set when :data:`STOP_AFTER_TRIAL` arrives during the block (or arrived before it,
+    after :func:`catch_stop_requests_early`); the handler in place before is put back at its end.
+    Off the main thread, or without SIGUSR1, the event is returned but never set by a signal (the
+    signal keeps its previous meaning)."""
     requested = threading.Event()
+    if _early_request.is_set():
+        _early_request.clear()
+        requested.set()
     if STOP_AFTER_TRIAL is None or not _on_main_thread():
         yield requested
         return

@@ -31,6 +31,11 @@ before it (global RNGs, torch state). A learner that raises fails its own cell o
 *process* dies (crash, out of memory, killed) is reported failed with its run marked KILLED, and
 the next invocation continues it from its checkpoint; the cells beside it go on. The driver keeps at most
 ``workers`` cells in flight; that bounded feeding is the only scheduling done here.
+
+**Stopping.** Ctrl-C or SIGTERM to the driver stops the running cells at once (each run KILLED,
+resumable). ``kill -USR1 DRIVER_PID`` drains instead: no more cells start, and each running
+local cell stops once its trial in progress is stored (Ray tasks cannot be signalled: they run to
+their end). Either way the same command continues the sweep.
 """
 
 from __future__ import annotations
@@ -42,6 +47,7 @@ import os
 import re
 import tempfile
 import time
+import threading
 import traceback
 from collections import deque
 from collections.abc import Iterable, Sequence
@@ -204,7 +210,7 @@ class CellOutcome:
     """How one cell ended in this invocation (``skipped``: it had a FINISHED child already)."""
 
     cell: Cell
-    status: Literal["finished", "failed", "skipped"]
+    status: Literal["finished", "failed", "skipped", "stopped"]
     run_id: str | None
     solved: bool = False
     interaction_time_to_success: float | None = None
@@ -220,6 +226,8 @@ class CellOutcome:
             return f"{head}: FAILED ({self.error})"
         if self.status == "skipped":
             return f"{head}: already finished (run {self.run_id})"
+        if self.status == "stopped":
+            return f"{head}: {self.stop_reason} (run {self.run_id} KILLED; the next invocation resumes it)"
         if self.solved:
             return f"{head}: solved after {self.interaction_time_to_success:.1f} s of interaction, wall {self.wall_seconds:.0f} s"
         return f"{head}: not solved ({self.stop_reason}) after {self.interaction_seconds:.1f} s, wall {self.wall_seconds:.0f} s"
@@ -232,6 +240,14 @@ class SweepResult:
     experiment_id: str
     tracking_uri: str
     outcomes: list[CellOutcome]
+
+    #: cells left unstarted by a stop request (``kill -USR1`` to the driver)
+    not_started: int = 0
+
+    @property
+    def stopped_early(self) -> bool:
+        """Whether a stop request ended the sweep before every cell had run (the parent run is KILLED)."""
+        return bool(self.with_status("stopped")) or self.not_started > 0
 
     def with_status(self, status: str) -> list[CellOutcome]:
         return [o for o in self.outcomes if o.status == status]
@@ -306,9 +322,11 @@ def _single_thread() -> None:
 
 def run_cell(job: CellJob) -> CellOutcome:
     """Run one cell as a child of the sweep's parent run; never raises for a failing learner
-    (SIGTERM to the worker raises ``KeyboardInterrupt``: the runner marks the child KILLED)."""
-    from harness.interrupts import terminate_as_interrupt
+    (SIGTERM to the worker raises ``KeyboardInterrupt``: the runner marks the child KILLED;
+    SIGUSR1 stops it after the trial in progress: a ``stopped`` outcome, the child KILLED)."""
+    from harness.interrupts import StopRequested, catch_stop_requests_early, terminate_as_interrupt
 
+    catch_stop_requests_early()
     _single_thread()
     terminate_as_interrupt()
     from harness.errors import CheckpointError
@@ -344,6 +362,8 @@ def run_cell(job: CellJob) -> CellOutcome:
                 result = run(config, tracker=tracker, progress=SilentProgress())
         else:
             result = run(config, tracker=tracker, progress=SilentProgress())
+    except StopRequested as stopped:
+        return CellOutcome(cell, "stopped", tracker.run_id, stop_reason=str(stopped), resumed=job.resume_run_id is not None)
     except Exception as exc:
         error = f"{type(exc).__name__}: {exc}".splitlines()[0][:500]
         if tracker.run_id is not None:
@@ -381,6 +401,8 @@ class _Pool(Protocol):
     def wait(self, handles: Sequence[Any], timeout: float) -> list[Any]: ...
 
     def result(self, handle: Any) -> CellOutcome: ...
+
+    def request_stop(self) -> None: ...
 
     def close(self, cancel: bool) -> None: ...
 
@@ -452,6 +474,14 @@ class LocalPool:
         self._running.remove(handle)
         return handle.outcome()
 
+    def request_stop(self) -> None:
+        """Ask every running cell to stop after its trial in progress (:data:`~harness.interrupts.STOP_AFTER_TRIAL`)."""
+        from harness.interrupts import STOP_AFTER_TRIAL
+
+        for handle in self._running:
+            if handle.process.is_alive() and handle.process.pid is not None:
+                os.kill(handle.process.pid, STOP_AFTER_TRIAL)
+
     def close(self, cancel: bool) -> None:
         """Stop the cells still running with SIGTERM (each marks its run KILLED, resumable), killing
         one that has not exited after :data:`WORKER_STOP_SECONDS`."""
@@ -510,6 +540,10 @@ class RayPool:
 
     def result(self, handle) -> CellOutcome:
         return self._ray.get(handle)
+
+    def request_stop(self) -> None:
+        """Nothing to pass on: Ray tasks cannot be signalled, so the running cells finish their runs
+        (no work is lost; Ctrl-C stops them at once instead)."""
 
     def close(self, cancel: bool) -> None:
         """``cancel``: cancel the unfinished cells (a running one gets ``KeyboardInterrupt`` and marks
@@ -764,10 +798,16 @@ def run_sweep(
 ) -> SweepResult:
     """Run (or resume) ``spec`` and return every cell's outcome; failed cells do not raise.
 
+    ``kill -USR1`` to this process (on its main thread) drains the sweep: no more cells start,
+    running local cells stop after their trial in progress (``stopped`` outcomes; Ray cells run
+    to their end), and the result comes back with :attr:`SweepResult.stopped_early`, the parent
+    run KILLED; the same spec run again continues.
+
     Everything the user can get wrong (plugins, options, limits, executor) is checked before the
     store is touched. ``workers`` defaults to :func:`default_workers` (local) or to the Ray
     cluster's CPUs (``--address``) / :func:`default_workers` (embedded Ray).
     """
+    from harness.interrupts import stop_requests
     from harness.tracking import ensure_experiment, open_client, resolve_tracking_uri
 
     check_executor(executor)
@@ -806,31 +846,37 @@ def run_sweep(
     total = len(spec.cells())
     status = "FAILED"  # unless the loop completes; KILLED on Ctrl-C
     pool: _Pool | None = None
-    try:
-        if jobs:
-            if executor == "ray":
-                pool = RayPool(workers or (None if address else default_workers()), address)
-            else:
-                pool = LocalPool(workers or default_workers())
-        progress.start(sweep_id, total, len(outcomes))
-        if pool is not None:
-            _drive(pool, jobs, pool.workers, result, client, progress, TrialWatcher(client, experiment_id, parent_run_id))
-        status = "FINISHED" if not result.failed else "FAILED"
-    except KeyboardInterrupt:
-        status = "KILLED"
-        raise
-    finally:
-        if pool is not None:
-            pool.close(cancel=status != "FINISHED")
-        progress.finish(result)
-        _close_parent(client, parent_run_id, result, total, executor, status)
+    with stop_requests() as stop:  # kill -USR1: no new cells, the running ones stop after their trial
+        try:
+            if jobs:
+                if executor == "ray":
+                    pool = RayPool(workers or (None if address else default_workers()), address)
+                else:
+                    pool = LocalPool(workers or default_workers())
+            progress.start(sweep_id, total, len(outcomes))
+            if pool is not None:
+                _drive(pool, jobs, pool.workers, result, client, progress, TrialWatcher(client, experiment_id, parent_run_id), stop)
+            result.not_started = len(jobs)  # > 0 only after a stop request
+            status = "KILLED" if result.stopped_early else "FINISHED" if not result.failed else "FAILED"
+        except KeyboardInterrupt:
+            status = "KILLED"
+            raise
+        finally:
+            if pool is not None:
+                pool.close(cancel=status != "FINISHED")
+            progress.finish(result)
+            _close_parent(client, parent_run_id, result, total, executor, status)
     return result
 
 
 def _drive(pool: _Pool, jobs: deque, workers: int, result: SweepResult, client, progress: SweepProgress,
-           watcher: TrialWatcher | None = None) -> None:
+           watcher: TrialWatcher | None = None, stop: threading.Event | None = None) -> None:
+    """Run ``jobs`` with at most ``workers`` in flight. Once ``stop`` is set (a stop request), no
+    more cells start and the running ones are asked to stop after their trial in progress; it
+    returns when they have, leaving the cells not started in ``jobs``."""
     inflight: dict[Any, tuple[CellJob, float]] = {}
     durations: list[float] = []
+    draining = False
 
     def report() -> None:
         done = len(result.outcomes)
@@ -844,8 +890,11 @@ def _drive(pool: _Pool, jobs: deque, workers: int, result: SweepResult, client, 
         progress.update(done, len(inflight), len(result.failed), eta)
 
     try:
-        while jobs or inflight:
-            while jobs and len(inflight) < workers:
+        while (jobs and not draining) or inflight:
+            if stop is not None and stop.is_set() and not draining:
+                draining = True
+                pool.request_stop()
+            while jobs and len(inflight) < workers and not draining:
                 job = jobs.popleft()
                 inflight[pool.submit(job)] = (job, time.perf_counter())
             report()
@@ -879,12 +928,13 @@ def _drive(pool: _Pool, jobs: deque, workers: int, result: SweepResult, client, 
 def _close_parent(client, parent_run_id: str, result: SweepResult, total: int, executor: str, status: str) -> None:
     from mlflow.entities import RunTag
 
-    counts = {s: len(result.with_status(s)) for s in ("finished", "failed", "skipped")}
+    counts = {s: len(result.with_status(s)) for s in ("finished", "failed", "skipped", "stopped")}
     try:
         client.log_batch(parent_run_id, tags=[
             RunTag("harness.cells_total", str(total)),
             RunTag("harness.cells_finished", str(counts["finished"] + counts["skipped"])),
             RunTag("harness.cells_failed", str(counts["failed"])),
+            RunTag("harness.cells_stopped", str(counts["stopped"])),
             RunTag("harness.last_executor", executor),
         ])
     finally:

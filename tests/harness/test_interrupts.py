@@ -7,7 +7,8 @@ import signal
 
 import pytest
 
-from harness.interrupts import STOP_AFTER_TRIAL, StopRequested, held_interrupts, stop_requests, terminate_as_interrupt
+from harness.interrupts import (STOP_AFTER_TRIAL, StopRequested, catch_stop_requests_early, held_interrupts, stop_requests,
+                                terminate_as_interrupt)
 from harness.runner import RunConfig, run
 from harness.tracking import MemoryTracker
 from tests.harness.trackers import AtTrial
@@ -116,3 +117,18 @@ def test_stop_requests_only_record_the_signal_inside_the_block():
         assert requested.is_set()  # and the process is still here: the default action would have ended it
     with stop_requests() as again:
         assert not again.is_set()
+
+
+@pytest.mark.skipif(STOP_AFTER_TRIAL is None, reason="no SIGUSR1 on this platform")
+def test_a_request_before_the_block_is_honoured_once_when_caught_early():
+    """A sweep's cell process may be asked to stop while it is still importing."""
+    before = signal.getsignal(STOP_AFTER_TRIAL)
+    try:
+        catch_stop_requests_early()
+        os.kill(os.getpid(), STOP_AFTER_TRIAL)  # recorded; the signal's default action would end the process
+        with stop_requests() as requested:
+            assert requested.is_set()
+        with stop_requests() as again:
+            assert not again.is_set()
+    finally:
+        signal.signal(STOP_AFTER_TRIAL, before)

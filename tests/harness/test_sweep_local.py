@@ -72,3 +72,37 @@ def test_sigterm_to_the_driver_stops_the_workers_and_marks_the_runs_killed(plugi
     assert "interrupted" in output and "Traceback" not in output
     assert sorted(r.info.status for r in sweep_runs(mlflow_uri, spec, "cell")) == ["KILLED", "KILLED"]
     assert [r.info.status for r in sweep_runs(mlflow_uri, spec, "sweep")] == ["KILLED"]
+
+
+def test_sigusr1_to_the_driver_drains_the_sweep(plugins, mlflow_uri, tmp_path):
+    """`kill -USR1 DRIVER_PID`: no more cells start, each running cell stops once its trial in progress is
+    stored (its run KILLED, nothing of a later trial logged), the parent is KILLED and the command says how to
+    continue (exit 130)."""
+    import re
+    import signal
+    import time
+
+    args = ["sweep", "--learners", "sweep-slow", "--tasks", "sweep-toy", "--seeds", "0-2",
+            "--max-trials", "5000", "--eval-episodes", "1", "--workers", "2", "--tracking-uri", mlflow_uri, "--quiet"]
+    spec = SweepSpec(("sweep-slow",), ("sweep-toy",), (0, 1, 2), max_trials=5000, eval_episodes=1)
+    client = open_client(mlflow_uri)
+    with HarnessProcess(args, tmp_path) as proc:
+        deadline = time.time() + 120
+        while not (len(cells := sweep_runs(mlflow_uri, spec, "cell")) == 2
+                   and all(client.get_metric_history(r.info.run_id, "interaction_seconds") for r in cells)):
+            assert time.time() < deadline, f"two cells did not start in time:\n{proc.output()}"
+            time.sleep(0.5)
+        proc.signal(signal.SIGUSR1)
+        code = proc.wait(timeout=180)
+        output = proc.output()
+    assert code == 130, output
+    assert "0 failed, 2 stopped as asked, 1 not started" in output and "Traceback" not in output
+    assert "re-run the same command to continue" in output
+    cells = sweep_runs(mlflow_uri, spec, "cell")
+    assert sorted(int(r.data.tags["seed"]) for r in cells) == [0, 1] and {r.info.status for r in cells} == {"KILLED"}
+    for run in cells:
+        stopped_at = re.search(rf"{run.data.tags['mlflow.runName']}: stopped after trial (\d+) as asked \(SIGUSR1\)", output)
+        assert stopped_at, output
+        assert max(m.step for m in client.get_metric_history(run.info.run_id, "eval_cost")) == int(stopped_at[1])
+    (parent,) = sweep_runs(mlflow_uri, spec, "sweep")
+    assert parent.info.status == "KILLED" and parent.data.tags["harness.cells_stopped"] == "2"
