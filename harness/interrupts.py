@@ -98,21 +98,45 @@ def catch_stop_requests_early() -> None:
         signal.signal(STOP_AFTER_TRIAL, lambda signum, frame: _early_request.set())
 
 
+class StopRequests:
+    """Listens for :data:`STOP_AFTER_TRIAL` from :meth:`listen` until :meth:`restore`.
+
+    :meth:`is_set` tells whether it arrived (or arrived before, after
+    :func:`catch_stop_requests_early`). :meth:`restore` puts back the handler that was in place.
+    Off the main thread, or without SIGUSR1, nothing is installed and the signal keeps its
+    previous meaning. :func:`stop_requests` is the same as a ``with`` block.
+    """
+
+    def __init__(self) -> None:
+        self._requested = threading.Event()
+        self._previous = None
+        self._installed = False
+
+    @classmethod
+    def listen(cls) -> StopRequests:
+        listener = cls()
+        if _early_request.is_set():
+            _early_request.clear()
+            listener._requested.set()
+        if STOP_AFTER_TRIAL is not None and _on_main_thread():
+            listener._previous = signal.signal(STOP_AFTER_TRIAL, lambda signum, frame: listener._requested.set())
+            listener._installed = True
+        return listener
+
+    def is_set(self) -> bool:
+        return self._requested.is_set()
+
+    def restore(self) -> None:
+        if self._installed:
+            signal.signal(STOP_AFTER_TRIAL, self._previous)
+            self._installed = False
+
+
 @contextmanager
-def stop_requests() -> Iterator[threading.Event]:
-    """An event set when :data:`STOP_AFTER_TRIAL` arrives during the block (or arrived before it,
-    after :func:`catch_stop_requests_early`); the handler in place before is put back at its end.
-    Off the main thread, or without SIGUSR1, the event is returned but never set by a signal (the
-    signal keeps its previous meaning)."""
-    requested = threading.Event()
-    if _early_request.is_set():
-        _early_request.clear()
-        requested.set()
-    if STOP_AFTER_TRIAL is None or not _on_main_thread():
-        yield requested
-        return
-    previous = signal.signal(STOP_AFTER_TRIAL, lambda signum, frame: requested.set())
+def stop_requests() -> Iterator[StopRequests]:
+    """:class:`StopRequests` listening for the duration of the block."""
+    listener = StopRequests.listen()
     try:
-        yield requested
+        yield listener
     finally:
-        signal.signal(STOP_AFTER_TRIAL, previous)
+        listener.restore()

@@ -32,7 +32,7 @@ from harness.discovery import load_learner, load_task
 from harness.errors import BudgetExhaustedError, CheckpointError, HarnessError, OptionError
 from harness.evaluation import Evaluator
 from harness.interaction import Interaction
-from harness.interrupts import STOP_AFTER_TRIAL, StopRequested, held_interrupts, stop_requests
+from harness.interrupts import STOP_AFTER_TRIAL, StopRequested, StopRequests, held_interrupts
 from harness.learner import Learner
 from harness.progress import ProgressReporter, SilentProgress
 from harness.provenance import git_sha, package_versions
@@ -268,76 +268,77 @@ def run(
     stop_reason = "learner finished"
     status = "FAILED"
     generator = learner.learn(interaction)
-    with stop_requests() as stop:  # kill -USR1: stop once the trial in progress is stored
+    stop = StopRequests.listen()  # kill -USR1: stop once the trial in progress is stored
+    try:
         try:
-            try:
-                for trial, policy in enumerate(generator, start=first_trial):
-                    eval_start = time.perf_counter()
-                    result = evaluator(policy)
-                    eval_seconds = time.perf_counter() - eval_start
-                    record: dict[str, Any] = {
-                        "trial": trial,
-                        "interaction_seconds": interaction.seconds,
-                        "interaction_episodes": len(interaction.episodes),
-                        "eval_success_rate": result.success_rate,
-                        "eval_cost": result.mean_cost,
-                        "wall_seconds": time.perf_counter() - start,
-                        "eval_seconds": eval_seconds,
-                    }
-                    record.update({f"eval_{k}": v for k, v in result.mean_extra.items()})
-                    record.update(learner.metrics)
-                    learner.metrics = {}
-                    history.append({k: float(v) for k, v in record.items()})
-                    with held_interrupts():  # a stop request waits for the trial's records to be stored whole
-                        tracker.log_metrics({k: v for k, v in record.items() if k != "trial"}, step=trial)
-                        _log_trial_artifacts(tracker, learner, policy, interaction, workdir, trial)
-                    progress.update({**record, "max_trials": prep.max_trials}, completed=trial if prep.max_trials else interaction.seconds)
-                    if result.solved:
-                        solved_at = (interaction.seconds, len(interaction.episodes))
-                        stop_reason = "solved"
-                        break
-                    if prep.max_trials is not None and trial >= prep.max_trials:
-                        stop_reason = "max trials"
-                        break
-                    if learner.supports_resume:
-                        with held_interrupts():
-                            _save_checkpoint(tracker, workdir, Checkpoint(
-                                identity, trial, history, interaction.state_dict(), learner.state_dict(), global_rng_state()))
-                    if stop.is_set():
-                        raise StopRequested(f"stopped after trial {trial} as asked ({STOP_AFTER_TRIAL.name})")
-            except BudgetExhaustedError:
-                stop_reason = "budget"
-            finally:
-                generator.close()
-            status = "FINISHED"
-        except KeyboardInterrupt:
-            status = "KILLED"
-            raise
+            for trial, policy in enumerate(generator, start=first_trial):
+                eval_start = time.perf_counter()
+                result = evaluator(policy)
+                eval_seconds = time.perf_counter() - eval_start
+                record: dict[str, Any] = {
+                    "trial": trial,
+                    "interaction_seconds": interaction.seconds,
+                    "interaction_episodes": len(interaction.episodes),
+                    "eval_success_rate": result.success_rate,
+                    "eval_cost": result.mean_cost,
+                    "wall_seconds": time.perf_counter() - start,
+                    "eval_seconds": eval_seconds,
+                }
+                record.update({f"eval_{k}": v for k, v in result.mean_extra.items()})
+                record.update(learner.metrics)
+                learner.metrics = {}
+                history.append({k: float(v) for k, v in record.items()})
+                with held_interrupts():  # a stop request waits for the trial's records to be stored whole
+                    tracker.log_metrics({k: v for k, v in record.items() if k != "trial"}, step=trial)
+                    _log_trial_artifacts(tracker, learner, policy, interaction, workdir, trial)
+                progress.update({**record, "max_trials": prep.max_trials}, completed=trial if prep.max_trials else interaction.seconds)
+                if result.solved:
+                    solved_at = (interaction.seconds, len(interaction.episodes))
+                    stop_reason = "solved"
+                    break
+                if prep.max_trials is not None and trial >= prep.max_trials:
+                    stop_reason = "max trials"
+                    break
+                if learner.supports_resume:
+                    with held_interrupts():
+                        _save_checkpoint(tracker, workdir, Checkpoint(
+                            identity, trial, history, interaction.state_dict(), learner.state_dict(), global_rng_state()))
+                if stop.is_set():
+                    raise StopRequested(f"stopped after trial {trial} as asked ({STOP_AFTER_TRIAL.name})")
+        except BudgetExhaustedError:
+            stop_reason = "budget"
         finally:
-            wall = time.perf_counter() - start
-            run_result = RunResult(
-                run_id=tracker.run_id,
-                learner=config.learner,
-                task=config.task,
-                seed=config.seed,
-                solved=solved_at is not None,
-                interaction_time_to_success=None if solved_at is None else solved_at[0],
-                trials_to_success=None if solved_at is None else solved_at[1],
-                trials=len(history),
-                interaction_seconds=interaction.seconds,
-                interaction_episodes=len(interaction.episodes),
-                wall_seconds=wall,
-                stop_reason=stop_reason if status == "FINISHED" else status.lower(),
-                history=history,
-            )
-            with held_interrupts():  # a second Ctrl-C must not cut the run's final records short
-                _finish(tracker, run_result, interaction, workdir, status)
-            interaction.close()
-            evaluator.close()
-            if own_workdir:
-                import shutil
+            generator.close()
+        status = "FINISHED"
+    except KeyboardInterrupt:
+        status = "KILLED"
+        raise
+    finally:
+        stop.restore()
+        wall = time.perf_counter() - start
+        run_result = RunResult(
+            run_id=tracker.run_id,
+            learner=config.learner,
+            task=config.task,
+            seed=config.seed,
+            solved=solved_at is not None,
+            interaction_time_to_success=None if solved_at is None else solved_at[0],
+            trials_to_success=None if solved_at is None else solved_at[1],
+            trials=len(history),
+            interaction_seconds=interaction.seconds,
+            interaction_episodes=len(interaction.episodes),
+            wall_seconds=wall,
+            stop_reason=stop_reason if status == "FINISHED" else status.lower(),
+            history=history,
+        )
+        with held_interrupts():  # a second Ctrl-C must not cut the run's final records short
+            _finish(tracker, run_result, interaction, workdir, status)
+        interaction.close()
+        evaluator.close()
+        if own_workdir:
+            import shutil
 
-                shutil.rmtree(workdir, ignore_errors=True)
+            shutil.rmtree(workdir, ignore_errors=True)
     progress.finish(run_result.summary())
     return run_result
 

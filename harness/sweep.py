@@ -47,7 +47,6 @@ import os
 import re
 import tempfile
 import time
-import threading
 import traceback
 from collections import deque
 from collections.abc import Iterable, Sequence
@@ -55,6 +54,7 @@ from dataclasses import dataclass, field
 from typing import Any, Literal, Protocol
 
 from harness.errors import HarnessError, OptionError
+from harness.interrupts import StopRequests
 
 SWEEP_EXPERIMENT = "sweeps"
 SWEEP_TAG = "harness.sweep_id"
@@ -807,7 +807,6 @@ def run_sweep(
     store is touched. ``workers`` defaults to :func:`default_workers` (local) or to the Ray
     cluster's CPUs (``--address``) / :func:`default_workers` (embedded Ray).
     """
-    from harness.interrupts import stop_requests
     from harness.tracking import ensure_experiment, open_client, resolve_tracking_uri
 
     check_executor(executor)
@@ -846,31 +845,32 @@ def run_sweep(
     total = len(spec.cells())
     status = "FAILED"  # unless the loop completes; KILLED on Ctrl-C
     pool: _Pool | None = None
-    with stop_requests() as stop:  # kill -USR1: no new cells, the running ones stop after their trial
-        try:
-            if jobs:
-                if executor == "ray":
-                    pool = RayPool(workers or (None if address else default_workers()), address)
-                else:
-                    pool = LocalPool(workers or default_workers())
-            progress.start(sweep_id, total, len(outcomes))
-            if pool is not None:
-                _drive(pool, jobs, pool.workers, result, client, progress, TrialWatcher(client, experiment_id, parent_run_id), stop)
-            result.not_started = len(jobs)  # > 0 only after a stop request
-            status = "KILLED" if result.stopped_early else "FINISHED" if not result.failed else "FAILED"
-        except KeyboardInterrupt:
-            status = "KILLED"
-            raise
-        finally:
-            if pool is not None:
-                pool.close(cancel=status != "FINISHED")
-            progress.finish(result)
-            _close_parent(client, parent_run_id, result, total, executor, status)
+    stop = StopRequests.listen()  # kill -USR1: no new cells, the running ones stop after their trial
+    try:
+        if jobs:
+            if executor == "ray":
+                pool = RayPool(workers or (None if address else default_workers()), address)
+            else:
+                pool = LocalPool(workers or default_workers())
+        progress.start(sweep_id, total, len(outcomes))
+        if pool is not None:
+            _drive(pool, jobs, pool.workers, result, client, progress, TrialWatcher(client, experiment_id, parent_run_id), stop)
+        result.not_started = len(jobs)  # > 0 only after a stop request
+        status = "KILLED" if result.stopped_early else "FINISHED" if not result.failed else "FAILED"
+    except KeyboardInterrupt:
+        status = "KILLED"
+        raise
+    finally:
+        stop.restore()
+        if pool is not None:
+            pool.close(cancel=status != "FINISHED")
+        progress.finish(result)
+        _close_parent(client, parent_run_id, result, total, executor, status)
     return result
 
 
 def _drive(pool: _Pool, jobs: deque, workers: int, result: SweepResult, client, progress: SweepProgress,
-           watcher: TrialWatcher | None = None, stop: threading.Event | None = None) -> None:
+           watcher: TrialWatcher | None = None, stop: StopRequests | None = None) -> None:
     """Run ``jobs`` with at most ``workers`` in flight. Once ``stop`` is set (a stop request), no
     more cells start and the running ones are asked to stop after their trial in progress; it
     returns when they have, leaving the cells not started in ``jobs``."""
