@@ -139,7 +139,11 @@ def bench_command(
     quiet: bool,
     resume: str | None,
 ) -> None:
-    """Run one learner on one task and report its interaction time to success."""
+    """Run one learner on one task and report its interaction time to success.
+
+    Ctrl-C or `kill PID` stops the run at once, `kill -USR1 PID` after the trial in progress;
+    either way it is marked KILLED and continues with the same command plus --resume.
+    """
     from harness.options import parse_assignments
     from harness.progress import RichProgress, SilentProgress
     from harness.runner import RunConfig, prepare, route_options, run
