@@ -641,7 +641,7 @@ class RichSweepProgress:
                                   description=f"running {running} | failed {failed} | ETA {format_duration(eta_seconds)}")
 
     def cell_done(self, outcome: CellOutcome) -> None:
-        style = "red" if outcome.status == "failed" else ""
+        style = {"failed": "red", "stopped": "yellow"}.get(outcome.status, "")
         self.console.print(outcome.line(), style=style, soft_wrap=True)
 
     def trial(self, label: str, record: dict[str, float]) -> None:
