@@ -159,8 +159,9 @@ def bench_command(
         resume = tracker.find_resumable(task, learner, seed)
         if resume is None:
             raise HarnessError(f"no unfinished run of {learner} on {task} with seed {seed} in {tracker.tracking_uri} to resume")
-    from harness.interrupts import STOP_AFTER_TRIAL, StopRequested
+    from harness.interrupts import STOP_AFTER_TRIAL, StopRequested, catch_stop_requests_early
 
+    catch_stop_requests_early()  # a kill -USR1 before the run listens (loading a checkpoint) is kept, not fatal
     if not quiet and STOP_AFTER_TRIAL is not None:
         click.echo(f"to stop (resumable): Ctrl-C or kill {os.getpid()} now; kill -{STOP_AFTER_TRIAL.name[3:]} {os.getpid()} "
                    "after the trial in progress", err=True)
