@@ -106,13 +106,13 @@ def main(argv: list[str] | None = None) -> None:
             evaluator = Evaluator(task, n_episodes=args.episodes, seed=args.seed)
             logged = run.metric("eval_success_rate")
             available = set(run.policy_trials())
+            n_eval = int(run.params.get("eval_episodes", 10))
             for trial in args.trials:
                 if trial not in available:
                     print(f"run {run_id[:8]}: no policy of trial {trial}; skipped", flush=True)
                     continue
                 found = describe(task, evaluator(run.policy(trial)).episodes)
                 steps = found["steps"]
-                n_eval = int(run.params.get("eval_episodes", 10))
                 own = None if trial not in logged else f"{round(n_eval * logged[trial])} of {n_eval}"
                 rows.append((run_id[:8], run.params.get("seed", "?"), trial, own, found))
                 c = found["counts"]

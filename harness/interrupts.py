@@ -10,7 +10,7 @@ SIGINT, so for it SIGTERM is the way to stop it cleanly.)
 
 SIGTERM stops a run at once: the trial in progress (for PILCO, minutes of policy search) is
 redone when the run is resumed. :data:`STOP_AFTER_TRIAL` (SIGUSR1, ``kill -USR1 PID``) asks
-for a stop after it instead: :func:`stop_requests` records the request, and the runner ends the
+for a stop after it instead: :class:`StopRequests` records the request, and the runner ends the
 run KILLED (resumable) once that trial's records and checkpoint are stored. A sweep driver
 asked this way starts no more cells and passes the request on to its running local cells.
 """

@@ -54,7 +54,8 @@ from dataclasses import dataclass, field
 from typing import Any, Literal, Protocol
 
 from harness.errors import HarnessError, OptionError
-from harness.interrupts import StopRequests
+from harness.interrupts import (STOP_AFTER_TRIAL, StopRequested, StopRequests, catch_stop_requests_early,
+                                terminate_as_interrupt)
 
 SWEEP_EXPERIMENT = "sweeps"
 SWEEP_TAG = "harness.sweep_id"
@@ -324,8 +325,6 @@ def run_cell(job: CellJob) -> CellOutcome:
     """Run one cell as a child of the sweep's parent run; never raises for a failing learner
     (SIGTERM to the worker raises ``KeyboardInterrupt``: the runner marks the child KILLED;
     SIGUSR1 stops it after the trial in progress: a ``stopped`` outcome, the child KILLED)."""
-    from harness.interrupts import StopRequested, catch_stop_requests_early, terminate_as_interrupt
-
     catch_stop_requests_early()
     _single_thread()
     terminate_as_interrupt()
@@ -476,8 +475,6 @@ class LocalPool:
 
     def request_stop(self) -> None:
         """Ask every running cell to stop after its trial in progress (:data:`~harness.interrupts.STOP_AFTER_TRIAL`)."""
-        from harness.interrupts import STOP_AFTER_TRIAL
-
         for handle in self._running:
             if handle.process.is_alive() and handle.process.pid is not None:
                 os.kill(handle.process.pid, STOP_AFTER_TRIAL)
