@@ -402,29 +402,31 @@ def comparison_row(task: str, label: str, runs: Sequence[RunRecord], reps: int =
 
     ``stopped``: runs of the same row stopped before their limit, unsolved so far. They are in no
     statistic but one: the bounds of the median over all runs (:func:`~harness.statistics.median_bounds`,
-    each stopped run needing at least the interaction it used)."""
+    each stopped run needing at least the interaction it used). A row may have stopped runs only: its
+    statistics over finished runs are then NaN and the bounds are all it has."""
     times = times_with_failures([r.solved for r in runs], [r.time_to_success for r in runs])
     with_stopped = median_bounds(times, [r.interaction_seconds for r in stopped])
     solved = [r for r in runs if r.solved]
     unsolved = [r for r in runs if not r.solved]
-    med_lo, med_hi = bootstrap_ci(times, median, reps=reps, seed=seed)
-    iqm_lo, iqm_hi = bootstrap_ci(times, iqm, reps=reps, seed=seed)
+    nan2 = (math.nan, math.nan)
+    med_lo, med_hi = bootstrap_ci(times, median, reps=reps, seed=seed) if runs else nan2
+    iqm_lo, iqm_hi = bootstrap_ci(times, iqm, reps=reps, seed=seed) if runs else nan2
     trials = _range([r.trials_to_success for r in solved if r.trials_to_success is not None])
     wall = _range([r.wall_seconds for r in runs])
     return {
         "task": task,
         "learner": label,
-        "sweep_id": ",".join(sorted({r.sweep_id for r in runs})),
+        "sweep_id": ",".join(sorted({r.sweep_id for r in [*runs, *stopped]})),
         "runs": len(runs),
         "solved": len(solved),
         "errors": sum(r.status == "FAILED" for r in runs),
-        "median_time_to_success_s": float(median(times)),
+        "median_time_to_success_s": float(median(times)) if runs else math.nan,
         "median_ci_low_s": med_lo,
         "median_ci_high_s": med_hi,
         "stopped": len(stopped),
         "median_with_stopped_low_s": with_stopped[0] if stopped else math.nan,
         "median_with_stopped_high_s": with_stopped[1] if stopped else math.nan,
-        "iqm_time_to_success_s": float(iqm(times)),
+        "iqm_time_to_success_s": float(iqm(times)) if runs else math.nan,
         "iqm_ci_low_s": iqm_lo,
         "iqm_ci_high_s": iqm_hi,
         "trials_to_success_median": trials[0],
@@ -648,6 +650,8 @@ def fmt_seconds(value: float) -> str:
 
 
 def _fmt_stat(point: float, low: float, high: float) -> str:
+    if math.isnan(point):
+        return "–"
     if math.isinf(point):
         return f"not reached [{fmt_seconds(low)}, {fmt_seconds(high)}]"
     return f"{point:.1f} [{fmt_seconds(low)}, {fmt_seconds(high)}]"
@@ -882,9 +886,10 @@ def make_report(
     stopped_by_task = groups(data.incomplete)
 
     all_rows: list[dict[str, Any]] = []
-    for task, by_label in by_task.items():
-        stopped = stopped_by_task.get(task, {})
-        rows = [comparison_row(task, label, runs, stopped=stopped.get(label, ())) for label, runs in by_label.items()]
+    for task in dict.fromkeys([*by_task, *stopped_by_task]):
+        by_label, stopped = by_task.get(task, {}), stopped_by_task.get(task, {})
+        labels = dict.fromkeys([*by_label, *stopped])  # a configuration whose runs are all stopped has a row too
+        rows = [comparison_row(task, label, by_label.get(label, []), stopped=stopped.get(label, ())) for label in labels]
         all_rows += rows
         md = out / f"comparison_{task}.md"
         md.write_text(comparison_markdown(task, rows))

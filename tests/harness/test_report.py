@@ -116,6 +116,17 @@ def test_comparison_row_bounds_the_median_with_its_stopped_runs():
     assert md.splitlines()[-1].endswith("| 0 | – |")
 
 
+def test_a_configuration_whose_runs_are_all_stopped_has_a_row_with_only_its_bounds():
+    stopped = [_record(0, False, interaction=66.0, status="KILLED"), _record(1, False, interaction=60.0, status="KILLED")]
+    row = comparison_row("double-pendulum", "pilco", [], reps=200, stopped=stopped)
+    assert (row["runs"], row["solved"], row["stopped"]) == (0, 0, 2)
+    assert all(math.isnan(row[k]) for k in ("median_time_to_success_s", "median_ci_low_s", "iqm_time_to_success_s",
+                                             "wall_seconds_median", "trials_to_success_median"))
+    assert (row["median_with_stopped_low_s"], row["median_with_stopped_high_s"]) == (63.0, np.inf)
+    assert comparison_markdown("double-pendulum", [row]).splitlines()[-1] == (
+        "| pilco | 0/0 | – | – | – | – | – | 0 | ≥ 63.0 (2 stopped of 2) |")
+
+
 def test_run_rows_give_unsolved_runs_a_lower_bound_not_a_value():
     runs = [_record(0, True, 15.0, 4.0), _record(1, False, interaction=60.0)]
     rows = run_rows("cartpole", "pilco", runs)
