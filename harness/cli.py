@@ -72,9 +72,6 @@ def main(debug: bool) -> None:
 
     from harness.interrupts import terminate_as_interrupt
 
-    # MLflow draws a download bar per artifact (a resumed run's checkpoint, each copied plot)
-    os.environ.setdefault("MLFLOW_ENABLE_ARTIFACTS_PROGRESS_BAR", "false")
-
     terminate_as_interrupt()  # `kill PID` / a scheduler's SIGTERM: the Ctrl-C path (run KILLED, resume hint)
 
 

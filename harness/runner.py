@@ -20,7 +20,7 @@ from __future__ import annotations
 import json
 import tempfile
 import time
-from collections.abc import Mapping
+from collections.abc import Mapping, Sequence
 from dataclasses import asdict, dataclass, field
 from pathlib import Path
 from typing import Any
@@ -29,7 +29,7 @@ import numpy as np
 
 from harness.checkpoint import Checkpoint, global_rng_state, identity_mismatch, load_checkpoint, save_checkpoint, set_global_rng_state
 from harness.discovery import load_learner, load_task
-from harness.errors import BudgetExhaustedError, CheckpointError, HarnessError, OptionError
+from harness.errors import BudgetExhaustedError, CheckpointError, HarnessError, OptionError, TrackingError
 from harness.evaluation import Evaluator
 from harness.interaction import Interaction
 from harness.interrupts import STOP_AFTER_TRIAL, StopRequested, StopRequests, held_interrupts
@@ -260,6 +260,7 @@ def run(
         wall_offset = history[-1]["wall_seconds"] if history else 0.0
         # params are immutable: the code that ran the trials from here on is a tag of its own
         tracker.set_tags({f"git_sha.resumed_at_trial_{first_trial}": git_sha()})
+        _log_missing_trials(tracker, history)
 
     total, unit = (prep.max_trials, "trials") if prep.max_trials else (prep.budget_seconds, "s")
     progress.start(f"{config.learner} on {config.task}", total, unit)
@@ -267,6 +268,7 @@ def run(
     solved_at: tuple[float, int] | None = None
     stop_reason = "learner finished"
     status = "FAILED"
+    failure: BaseException | None = None
     generator = learner.learn(interaction)
     stop = StopRequests.listen()  # kill -USR1: stop once the trial in progress is stored
     try:
@@ -288,21 +290,24 @@ def run(
                 record.update(learner.metrics)
                 learner.metrics = {}
                 history.append({k: float(v) for k, v in record.items()})
-                with held_interrupts():  # a stop request waits for the trial's records to be stored whole
-                    tracker.log_metrics({k: v for k, v in record.items() if k != "trial"}, step=trial)
+                last = result.solved or (prep.max_trials is not None and trial >= prep.max_trials)
+                # a stop request waits for the trial to be stored whole; the checkpoint (files) goes before
+                # the metrics (the store's database), so a store that refuses them loses no trial: the
+                # resume logs what the checkpoint holds and the store lacks (_log_missing_trials)
+                with held_interrupts():
                     _log_trial_artifacts(tracker, learner, policy, interaction, workdir, trial)
+                    if learner.supports_resume and not last:
+                        _save_checkpoint(tracker, workdir, Checkpoint(
+                            identity, trial, history, interaction.state_dict(), learner.state_dict(), global_rng_state()))
+                    tracker.log_metrics(_trial_metrics(record), step=trial)
                 progress.update({**record, "max_trials": prep.max_trials}, completed=trial if prep.max_trials else interaction.seconds)
                 if result.solved:
                     solved_at = (interaction.seconds, len(interaction.episodes))
                     stop_reason = "solved"
                     break
-                if prep.max_trials is not None and trial >= prep.max_trials:
+                if last:
                     stop_reason = "max trials"
                     break
-                if learner.supports_resume:
-                    with held_interrupts():
-                        _save_checkpoint(tracker, workdir, Checkpoint(
-                            identity, trial, history, interaction.state_dict(), learner.state_dict(), global_rng_state()))
                 if stop.is_set():
                     raise StopRequested(f"stopped after trial {trial} as asked ({STOP_AFTER_TRIAL.name})")
         except BudgetExhaustedError:
@@ -310,8 +315,11 @@ def run(
         finally:
             generator.close()
         status = "FINISHED"
-    except KeyboardInterrupt:
-        status = "KILLED"
+    except KeyboardInterrupt as exc:
+        status, failure = "KILLED", exc
+        raise
+    except BaseException as exc:
+        failure = exc
         raise
     finally:
         stop.restore()
@@ -331,8 +339,12 @@ def run(
             stop_reason=stop_reason if status == "FINISHED" else status.lower(),
             history=history,
         )
-        with held_interrupts():  # a second Ctrl-C must not cut the run's final records short
-            _finish(tracker, run_result, interaction, workdir, status)
+        try:
+            with held_interrupts():  # a second Ctrl-C must not cut the run's final records short
+                _finish(tracker, run_result, interaction, workdir, status)
+        except TrackingError:
+            if failure is None:
+                raise  # else the store that refused the run's end refused its trial first: that error is the one to see
         interaction.close()
         evaluator.close()
         if own_workdir:
@@ -341,6 +353,20 @@ def run(
             shutil.rmtree(workdir, ignore_errors=True)
     progress.finish(run_result.summary())
     return run_result
+
+
+def _trial_metrics(record: Mapping[str, float]) -> dict[str, float]:
+    """A trial's record as logged: every entry but the trial number (the metrics' step)."""
+    return {k: v for k, v in record.items() if k != "trial"}
+
+
+def _log_missing_trials(tracker: Tracker, history: Sequence[Mapping[str, float]]) -> None:
+    """Log the trials of a resumed checkpoint that the store lacks: the store refused their metrics
+    (a server down, a database file replaced) after their checkpoint was written."""
+    logged = tracker.logged_steps("interaction_seconds")
+    for record in history:
+        if int(record["trial"]) not in logged:
+            tracker.log_metrics(_trial_metrics(record), step=int(record["trial"]))
 
 
 def _save_checkpoint(tracker: Tracker, workdir: Path, checkpoint: Checkpoint) -> None:

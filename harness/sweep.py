@@ -310,10 +310,9 @@ def default_workers() -> int:
 
 
 def _single_thread() -> None:
-    """One thread per cell (cells run side by side); no MLflow download bars in the sweep view."""
+    """One thread per cell (cells run side by side)."""
     for var in ("OMP_NUM_THREADS", "MKL_NUM_THREADS", "OPENBLAS_NUM_THREADS"):
         os.environ[var] = "1"
-    os.environ.setdefault("MLFLOW_ENABLE_ARTIFACTS_PROGRESS_BAR", "false")
     import sys
 
     torch = sys.modules.get("torch")

@@ -56,6 +56,8 @@ class Tracker(Protocol):
 
     def fetch_artifact(self, name: str, destination: Path) -> Path: ...
 
+    def logged_steps(self, key: str) -> set[int]: ...
+
 
 def _finite(metrics: Mapping[str, float]) -> dict[str, float]:
     """Drop non-finite values (MLflow rejects NaN in some stores; a missing metric is honest)."""
@@ -126,6 +128,9 @@ class MemoryTracker:
         destination.mkdir(parents=True, exist_ok=True)
         return Path(shutil.copy2(self.root / name, destination / Path(name).name))
 
+    def logged_steps(self, key: str) -> set[int]:
+        return {step for step, _ in self.metrics.get(key, [])}
+
 
 class MlflowTracker:
     """Logs to an MLflow tracking store.
@@ -177,6 +182,16 @@ class MlflowTracker:
         for i in range(0, len(items), 100):
             self.client.log_batch(self.run_id, params=items[i : i + 100])
 
+    @contextlib.contextmanager
+    def _writing(self, what: str):
+        """A write the store refuses mid-run becomes a :class:`TrackingError` that says what to do."""
+        try:
+            yield
+        except TrackingError:
+            raise
+        except Exception as exc:
+            raise TrackingError(refused_write_message(self.tracking_uri, self.run_id, what, exc)) from exc
+
     def log_metrics(self, metrics: Mapping[str, float], step: int) -> None:
         import time
 
@@ -185,19 +200,23 @@ class MlflowTracker:
         now = int(time.time() * 1000)
         batch = [Metric(k, v, now, int(step)) for k, v in _finite(metrics).items()]
         if batch:
-            self.client.log_batch(self.run_id, metrics=batch)
+            with self._writing(f"log the metrics of step {step}"):
+                self.client.log_batch(self.run_id, metrics=batch)
 
     def set_tags(self, tags: Mapping[str, Any]) -> None:
         from mlflow.entities import RunTag
 
-        self.client.log_batch(self.run_id, tags=[RunTag(k, str(v)) for k, v in tags.items()])
+        with self._writing("set tags"):
+            self.client.log_batch(self.run_id, tags=[RunTag(k, str(v)) for k, v in tags.items()])
 
     def log_artifact(self, path: Path, artifact_path: str | None = None) -> None:
-        self.client.log_artifact(self.run_id, str(path), artifact_path)
+        with self._writing(f"store {Path(path).name}"):
+            self.client.log_artifact(self.run_id, str(path), artifact_path)
 
     def finish(self, status: RunStatus) -> None:
         if self.run_id is not None:
-            self.client.set_terminated(self.run_id, status)
+            with self._writing(f"mark the run {status}"):
+                self.client.set_terminated(self.run_id, status)
 
     def resume(self, run_id: str) -> None:
         """Continue logging into the existing run ``run_id`` (marked RUNNING again)."""
@@ -215,6 +234,10 @@ class MlflowTracker:
         destination.mkdir(parents=True, exist_ok=True)
         return Path(self.client.download_artifacts(self.run_id, name, str(destination)))
 
+    def logged_steps(self, key: str) -> set[int]:
+        """The steps at which metric ``key`` of the run is in the store."""
+        return {m.step for m in self.client.get_metric_history(self.run_id, key)}
+
     def find_resumable(self, experiment: str, learner: str, seed: int) -> str | None:
         """The newest unfinished (RUNNING, FAILED or KILLED) run of ``learner`` with ``seed``."""
         found = self.client.get_experiment_by_name(experiment)
@@ -229,10 +252,30 @@ class MlflowTracker:
         return runs[0].info.run_id if runs else None
 
 
+def refused_write_message(tracking_uri: str, run_id: str | None, what: str, exc: Exception) -> str:
+    """What a write the store refused means, and the way back (the run's checkpoints are files
+    beside the store: the resume continues after the last trial whose checkpoint was stored)."""
+    first_line = str(exc).splitlines()[0] if str(exc) else ""
+    cause = "; ".join(line for line in str(exc).splitlines() if "readonly database" in line) or first_line
+    hint = ""
+    if "readonly database" in str(exc):
+        hint = (" The SQLite file was replaced or deleted while this process had it open (for example by "
+                "`git stash` or `git checkout` of a committed store); leave the file alone while runs write to it.")
+    return (f"the tracking store {tracking_uri} refused to {what} for run {run_id} ({type(exc).__name__}: {cause}).{hint} "
+            f"Once the store takes writes again, continue with the same command plus --resume {run_id} "
+            "(a sweep: re-run it); trials whose checkpoints were stored are not run again.")
+
+
 def quiet_mlflow_logging() -> None:
-    """Silence MLflow/alembic INFO chatter ("Creating initial MLflow database tables...")."""
-    for name in ("alembic", "alembic.runtime.migration", "mlflow", "mlflow.store.db.utils"):
+    """Silence MLflow/alembic INFO chatter ("Creating initial MLflow database tables...") and MLflow's
+    download bar per artifact (a resumed run's checkpoint, each plot a report or script copies);
+    ``MLFLOW_ENABLE_ARTIFACTS_PROGRESS_BAR=true`` in the environment brings the bars back."""
+    os.environ.setdefault("MLFLOW_ENABLE_ARTIFACTS_PROGRESS_BAR", "false")
+    for name in ("alembic", "alembic.runtime.migration", "mlflow"):
         logging.getLogger(name).setLevel(logging.WARNING)
+    # it logs each refused write with its traceback (twice, with its retry) before raising it; the
+    # harness reports the error once, as a TrackingError (the traceback with --debug)
+    logging.getLogger("mlflow.store.db.utils").setLevel(logging.CRITICAL)
 
 
 @contextlib.contextmanager

@@ -8,10 +8,10 @@ from pathlib import Path
 import pytest
 
 from harness.checkpoint import Checkpoint, load_checkpoint, save_checkpoint
-from harness.errors import CheckpointError
+from harness.errors import CheckpointError, TrackingError
 from harness.provenance import git_sha
 from harness.runner import RunConfig, run
-from tests.harness.trackers import InterruptAt
+from tests.harness.trackers import InterruptAt, RefusesAt
 from tests.processes import HarnessProcess, run_harness
 
 PILCO_TINY = {"num_centres": "4", "policy_max_evaluations": "6", "gp_max_evals": "20", "plots": "false"}
@@ -37,10 +37,28 @@ def test_resumed_run_equals_uninterrupted_run(learner, options, task_options):
     assert NOT_WALL(resumed.history) == NOT_WALL(reference.history)
     assert resumed.interaction_seconds == reference.interaction_seconds
     assert [s for s, _ in tracker.metrics["eval_cost"]] == [1, 2, 3, 4]
-    # the code the resumed trials ran is recorded (the run's git_sha param is the start's)
-    assert tracker.tags["git_sha.resumed_at_trial_3"] == git_sha()
+    # the code the resumed trials ran is recorded (the run's git_sha param is the start's); trial 3's
+    # checkpoint was stored before the interrupt came with its metrics, so the run resumed at trial 4
+    assert tracker.tags["git_sha.resumed_at_trial_4"] == git_sha()
     if "grow_horizon_below" in options:
         assert [h for _, h in sorted(tracker.metrics["planning_horizon"])][-4:] == [3.0, 6.0, 10.0, 10.0]
+
+
+def test_a_trial_whose_metrics_the_store_refused_is_not_run_again():
+    """The checkpoint is stored before the metrics: the resume logs the refused trial's record from it
+    and goes on with the next trial; the run's error is the refused write, not the failed end."""
+    config = RunConfig("pilco", "cartpole", seed=4, learner_options=PILCO_TINY, task_options={"horizon": 10}, max_trials=4,
+                       eval_episodes=2)
+    reference = run(config)
+    tracker = RefusesAt(3)
+    with pytest.raises(TrackingError, match="refused the metrics of step 3"):
+        run(config, tracker=tracker)
+    assert [s for s, _ in tracker.metrics["eval_cost"]] == [1, 2]
+    resumed = run(config, tracker=tracker.mended(), resume_run_id=tracker.run_id)
+    assert "git_sha.resumed_at_trial_4" in tracker.tags  # trial 3 came from its checkpoint
+    assert [s for s, _ in tracker.metrics["eval_cost"]] == [1, 2, 3, 4]  # each once
+    assert sorted(tracker.metrics["eval_cost"]) == [(i + 1, r["eval_cost"]) for i, r in enumerate(reference.history)]
+    assert NOT_WALL(resumed.history) == NOT_WALL(reference.history) and tracker.status == "FINISHED"
 
 
 def test_resume_refuses_other_settings():

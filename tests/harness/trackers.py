@@ -2,12 +2,13 @@
 
 from __future__ import annotations
 
+from harness.errors import TrackingError
 from harness.tracking import MemoryTracker
 
 
 class AtTrial(MemoryTracker):
     """Calls :meth:`at_trial` instead of logging, once, when trial ``step``'s metrics arrive (after
-    its evaluation, before its checkpoint)."""
+    its evaluation, its artifacts and its checkpoint: the metrics are the trial's last record)."""
 
     def __init__(self, step: int) -> None:
         super().__init__()
@@ -29,3 +30,26 @@ class InterruptAt(AtTrial):
 
     def at_trial(self, metrics, step) -> None:
         raise KeyboardInterrupt
+
+
+class RefusesAt(AtTrial):
+    """A store that refuses trial ``step``'s metrics (a server down, a database file replaced) and
+    every write after them until it is :meth:`mended` (the run's end included)."""
+
+    def at_trial(self, metrics, step) -> None:
+        self.broken = True
+        raise TrackingError(f"refused the metrics of step {step}")
+
+    def log_metrics(self, metrics, step):
+        if getattr(self, "broken", False):
+            raise TrackingError("still refusing")
+        super().log_metrics(metrics, step)
+
+    def finish(self, status):
+        if getattr(self, "broken", False):
+            raise TrackingError("still refusing to end the run")
+        super().finish(status)
+
+    def mended(self) -> RefusesAt:
+        self.broken = False
+        return self
