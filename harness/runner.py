@@ -344,7 +344,7 @@ def run(
                 _finish(tracker, run_result, interaction, workdir, status)
         except TrackingError:
             if failure is None:
-                raise  # else the store that refused the run's end refused its trial first: that error is the one to see
+                raise  # else the run's own error is the one to see (a store that refuses the end refused the trial first)
         interaction.close()
         evaluator.close()
         if own_workdir:
