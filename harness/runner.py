@@ -315,11 +315,10 @@ def run(
         finally:
             generator.close()
         status = "FINISHED"
-    except KeyboardInterrupt as exc:
-        status, failure = "KILLED", exc
-        raise
     except BaseException as exc:
         failure = exc
+        if isinstance(exc, KeyboardInterrupt):
+            status = "KILLED"
         raise
     finally:
         stop.restore()

@@ -255,10 +255,11 @@ class MlflowTracker:
 def refused_write_message(tracking_uri: str, run_id: str | None, what: str, exc: Exception) -> str:
     """What a write the store refused means, and the way back (the run's checkpoints are files
     beside the store: the resume continues after the last trial whose checkpoint was stored)."""
-    first_line = str(exc).splitlines()[0] if str(exc) else ""
-    cause = "; ".join(line for line in str(exc).splitlines() if "readonly database" in line) or first_line
+    lines = str(exc).splitlines()
+    readonly = [line for line in lines if "readonly database" in line]
+    cause = "; ".join(readonly) or (lines[0] if lines else "")
     hint = ""
-    if "readonly database" in str(exc):
+    if readonly:
         hint = (" The SQLite file was replaced or deleted while this process had it open (for example by "
                 "`git stash` or `git checkout` of a committed store); leave the file alone while runs write to it.")
     return (f"the tracking store {tracking_uri} refused to {what} for run {run_id} ({type(exc).__name__}: {cause}).{hint} "
