@@ -49,7 +49,7 @@ TASK_FILE = ROOT / "benchmarks" / "task_objectives.py"
 
 CHILD = r"""
 import json, os, sys, time
-root, config, repeats, task_file = sys.argv[1], sys.argv[2], int(sys.argv[3]), sys.argv[4]
+root, config, repeats, task_file, threads = sys.argv[1], sys.argv[2], int(sys.argv[3]), sys.argv[4], int(sys.argv[5])
 sys.path.insert(0, root)
 import numpy as np, torch
 torch.set_num_threads(1)
@@ -71,6 +71,14 @@ else:
     from benchmarks.bench_objective import dynamics_posterior, make_objective
     n, pseudo = json.loads(config)
     obj = make_objective(dynamics_posterior(n, pseudo))
+if threads > 1:  # as the learner does: the compiled kernel runs its own threads, the torch path torch's
+    import inspect
+    from plugins.pilco.moments import MomentMatchingGP
+    if "threads" in inspect.signature(MomentMatchingGP).parameters:
+        obj.dynamics = MomentMatchingGP(obj.posterior, threads=threads)
+        torch.set_num_threads(1 if obj.dynamics.kernel == "numba" else threads)
+    else:
+        torch.set_num_threads(threads)
 theta = obj.get_flat()
 hwm0 = status_mb("VmHWM")
 for _ in range(3):
@@ -101,10 +109,11 @@ print(json.dumps(dict(wall=1e3 * float(np.median(wall)), cpu=1e3 * float(np.medi
 """
 
 
-def run_child(root: str, config: str, repeats: int) -> dict:
-    """One side's measurements in a fresh process; ``config``: ``json [n, pseudo]`` or ``task:<name>``."""
-    env = dict(os.environ, PYTHONPATH=root, OMP_NUM_THREADS="1", MKL_NUM_THREADS="1")
-    args = [sys.executable, "-c", CHILD, root, config, str(repeats), str(TASK_FILE)]
+def run_child(root: str, config: str, repeats: int, threads: int = 1, extra_env: dict | None = None) -> dict:
+    """One side's measurements in a fresh process; ``config``: ``json [n, pseudo]`` or ``task:<name>``;
+    ``extra_env``: variables for this side (e.g. ``HARNESS_PILCO_KERNEL=torch``)."""
+    env = dict(os.environ, PYTHONPATH=root, OMP_NUM_THREADS=str(threads), MKL_NUM_THREADS=str(threads), **(extra_env or {}))
+    args = [sys.executable, "-c", CHILD, root, config, str(repeats), str(TASK_FILE), str(threads)]
     proc = subprocess.run(args, capture_output=True, text=True, env=env, cwd=root, check=False)
     if proc.returncode != 0:
         raise RuntimeError(f"child failed for {root} {config}:\n{proc.stderr}")
@@ -118,6 +127,10 @@ def _commit(root: str) -> str:
     return (sha or "no git") + ("+dirty" if dirty else "")
 
 
+def _env_text(env: dict) -> str:
+    return "".join(f", {k}={v}" for k, v in env.items())
+
+
 def main() -> None:
     parser = argparse.ArgumentParser(description=__doc__, formatter_class=argparse.RawDescriptionHelpFormatter)
     parser.add_argument("--before", required=True, help="checkout with the old implementation")
@@ -126,8 +139,14 @@ def main() -> None:
     parser.add_argument("--repeats", type=int, default=10)
     parser.add_argument("--tasks", action="store_true", help="the real-task configurations of benchmarks/task_objectives.py instead of the cart-pole ones")
     parser.add_argument("--out", default=None, help="default: results/benchmarks/objective_gradient_before_after[_tasks].md")
+    parser.add_argument("--before-env", action="append", default=[], metavar="KEY=VALUE",
+                        help="environment variable for the before side's processes (repeatable), e.g. HARNESS_PILCO_KERNEL=torch")
+    parser.add_argument("--after-env", action="append", default=[], metavar="KEY=VALUE", help="the same for the after side")
+    parser.add_argument("--threads", type=int, default=1, help="threads per side (the learner's split: the compiled kernel's "
+                        "own threads, else torch's); above 1 compare wall times")
     args = parser.parse_args()
     sides = {"before": str(Path(args.before).resolve()), "after": str(Path(args.after).resolve())}
+    side_env = {side: dict(kv.split("=", 1) for kv in getattr(args, f"{side}_env")) for side in sides}
     if args.tasks:
         spec = importlib.util.spec_from_file_location("task_objectives", TASK_FILE)
         module = importlib.util.module_from_spec(spec)
@@ -142,7 +161,7 @@ def main() -> None:
     for _ in range(args.rounds):
         for name, config in configs.items():
             for side, root in sides.items():
-                results[name][side].append(run_child(root, config, args.repeats))
+                results[name][side].append(run_child(root, config, args.repeats, args.threads, side_env[side]))
                 r = results[name][side][-1]
                 print(f"{name:26s} {side:6s} wall {r['wall']:7.1f} ms  cpu {r['cpu']:7.1f} ms", flush=True)
 
@@ -153,9 +172,9 @@ def main() -> None:
         "",
         f"Command: `{command_line(__file__)}`  ",
         f"{machine_line(load_before)} Prefer CPU time and ratios.  ",
-        f"before = `{sides['before']}` ({_commit(sides['before'])}), after = `{sides['after']}` ({_commit(sides['after'])}); "
-        f"{args.rounds} rounds x {args.repeats} "
-        "evaluations per side and configuration, alternating subprocesses, 1 torch thread; medians.",
+        f"before = `{sides['before']}` ({_commit(sides['before'])}{_env_text(side_env['before'])}), after = `{sides['after']}` "
+        f"({_commit(sides['after'])}{_env_text(side_env['after'])}); {args.rounds} rounds x {args.repeats} "
+        f"evaluations per side and configuration, alternating subprocesses, {args.threads} thread{'s' if args.threads > 1 else ''}; medians.",
         "",
         "| dynamics posterior | wall ms before / after | CPU ms before / after | CPU speed-up | aten calls before / after "
         "| peak RSS growth MB before / after | rel. diff J | rel. diff dJ (2-norm) | max abs diff dJ / max abs dJ "

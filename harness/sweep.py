@@ -310,14 +310,10 @@ def default_workers() -> int:
 
 
 def _single_thread() -> None:
-    """One thread per cell (cells run side by side)."""
-    for var in ("OMP_NUM_THREADS", "MKL_NUM_THREADS", "OPENBLAS_NUM_THREADS"):
-        os.environ[var] = "1"
-    import sys
+    """One thread per cell (cells run side by side; :func:`harness.threads.single_threaded`)."""
+    from harness.threads import single_threaded
 
-    torch = sys.modules.get("torch")
-    if torch is not None:
-        torch.set_num_threads(1)
+    single_threaded()
 
 
 def run_cell(job: CellJob) -> CellOutcome:

@@ -40,7 +40,7 @@ from threadpoolctl import threadpool_limits
 from harness.errors import NumericalError
 from plugins.pilco.kernels import cholesky, se_ard
 from plugins.pilco.posterior import GPPosterior
-from plugins.pilco.sparse import FITC_RIDGE, fitc_negative_log_likelihood, fitc_posterior
+from plugins.pilco.sparse import FITC_RIDGE, fitc_negative_log_likelihood, fitc_nll_of_pseudo_inputs, fitc_posterior
 
 DTYPE = torch.float64
 #: hypCurb: length-scales within ~100x of the input std, signal-to-noise ratio below ~1000, power 30
@@ -417,8 +417,8 @@ def optimise_pseudo_inputs(
     log_ell, log_alpha, log_sigma = (t.detach() for t in (hyp.log_ell, hyp.log_alpha, hyp.log_sigma))
 
     def objective(x: torch.Tensor) -> torch.Tensor:
-        z = x.reshape(shape)
-        return fitc_negative_log_likelihood(inputs, targets, z, log_ell, log_alpha, log_sigma, ridge).sum()
+        z = x.reshape(shape)  # hand-derived gradient (sparse.fitc_nll_and_pseudo_gradient)
+        return fitc_nll_of_pseudo_inputs(inputs, targets, z, log_ell, log_alpha, log_sigma, ridge).sum()
 
     result = minimise_lbfgsb(objective, init_pseudo_inputs.reshape(-1), None, None, max_evals)
     z = result.x.reshape(shape).clone()

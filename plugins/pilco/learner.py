@@ -38,8 +38,10 @@ from harness.interaction import Interaction
 from harness.learner import Learner, Policy
 from harness.options import Option
 from harness.task import Episode, TaskSpec
+from harness.threads import run_threads, torch_threads
 from plugins.pilco.controllers import LinearController, RBFController, SquashedController
 from plugins.pilco.gp import GPModel
+from plugins.pilco.moments import resolve_kernel
 from plugins.pilco.objective import PolicyObjective
 from plugins.pilco.policy_search import optimise_policy
 from plugins.pilco.propagate import StateLayout, act
@@ -209,7 +211,10 @@ class Pilco(Learner):
         Option("gp_restarts", int, 0, "extra GP training runs from perturbed starts (best kept)", low=0),
         Option("policy_max_iterations", int, None, "L-BFGS iterations (~line searches) per policy search (default: task preset, 150)", low=1),
         Option("policy_max_evaluations", int, None, "J+dJ evaluations per policy search (default: task preset, 300; unicycle 150)", low=1),
-        Option("threads", int, 1, "torch threads (1 when several runs share the machine)", low=1),
+        Option("threads", int, None, "CPU threads (default: the harness's choice, all cores for harness bench and 1 per "
+               "cell in a sweep; harness.threads)", low=1),
+        Option("kernel", str, "auto", "moment matching's Q contraction: numba (compiled backward pass, extra 'fast'), "
+               "torch (the reference) or auto (numba where installed)", choices=("auto", "numba", "torch")),
         Option("plots", bool, True, "save the predicted-vs-realised cost plot per trial"),
         Option("sample_particles", int, 500, "particles for J_sampled, the policy's cost by Monte Carlo through the same GP "
                "(checks the moment-matching J; 0 = off)", low=0),
@@ -239,6 +244,10 @@ class Pilco(Learner):
                 self.layout.policy_noise_cov(self.policy_noise_std)
             except ValueError as exc:
                 raise OptionError(f"plan_with_noise on {spec.name}: {exc} (drop --set plan_with_noise=true)") from None
+        try:
+            self.kernel = resolve_kernel(o["kernel"])
+        except ValueError as exc:
+            raise OptionError(f"kernel={o['kernel']}: {exc} (or --set kernel=torch)") from None
         self._state: dict[str, Any] = {}  # see state_dict(); filled at every hand-over
 
     @classmethod
@@ -286,8 +295,10 @@ class Pilco(Learner):
     def learn(self, interaction: Interaction) -> Iterator[Policy]:
         from plugins.random_learner import UniformRandomPolicy
 
-        torch.set_num_threads(self.options["threads"])
         spec, o = self.spec, self.options
+        threads = o["threads"] or run_threads()
+        kernel = self.kernel
+        torch.set_num_threads(threads)
         workdir = Path(tempfile.mkdtemp(prefix="pilco-"))
         model = GPModel(sparse_threshold=self.preset.sparse_threshold, num_pseudo=self.num_pseudo, max_evals_full=o["gp_max_evals"],
                         max_evals_fitc=o["gp_fitc_evals"], hyper_subset=o["gp_hyper_subset"],
@@ -319,10 +330,13 @@ class Pilco(Learner):
                 objective = PolicyObjective(
                     controller, model.posterior(), self.layout, spec.cost, spec.init_mean, spec.init_cov,
                     self.horizon, mean_only=self.mean_only, width=self.cost_width, policy_noise_std=self.policy_noise_std,
+                    kernel=kernel, threads=threads,
                 )
                 previous = objective.get_flat()
                 try:
-                    search = optimise_policy(objective, self.preset.policy_max_iterations, self.preset.policy_max_evaluations)
+                    # the numba contraction runs its own threads; everything else in J is small
+                    with torch_threads(1 if kernel == "numba" else threads):
+                        search = optimise_policy(objective, self.preset.policy_max_iterations, self.preset.policy_max_evaluations)
                     failed = 0.0
                 except NumericalError:
                     objective.set_flat(previous)  # keep the previous policy, say so in the metrics

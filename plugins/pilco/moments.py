@@ -38,12 +38,16 @@ Implementation notes (all float64, vectorised over outputs and basis points):
   ``(pairs, n, d)`` intermediates are kept) and tested equal to autograd through the same forward
   to 1e-11. Policy evaluation is dominated by the number of small operator calls, and autograd
   needs about three times as many.
-* A rollout whose gradient will be taken keeps each step's ``Q`` in a buffer of its own
-  (:meth:`_Workspace.keep`, allocated once per :class:`MomentMatchingGP` and reused by every
-  evaluation: touching fresh memory costs about as much as the arithmetic on it), so that the
-  backward pass does not recompute it (one product and one ``exp`` per step). Above
-  :data:`KEEP_Q_BYTES` per GP, and wherever a kept ``Q`` was overwritten since its forward pass,
-  the backward pass recomputes ``Q`` into a shared scratch buffer instead.
+* Two implementations of the ``Q`` contraction (``kernel``, :func:`resolve_kernel`): ``torch``
+  (:func:`_contract_forward`, :func:`_contract_backward`: the reference, always available) and
+  ``numba`` (:mod:`plugins.pilco.fused`: the same forward, a compiled backward pass that reads
+  ``Q`` once instead of through five thin products; the default where numba is installed). Both
+  agree to round-off (J 1e-11, dJ 5e-8 relative on the double pendulum); ``threads`` > 1 runs
+  groups of output pairs in parallel with the numba kernel, with the same results.
+* A rollout whose gradient will be taken can keep each step's ``Q`` in a buffer of its own
+  (:meth:`_Workspace.keep`, up to :data:`KEEP_Q_BYTES` per GP, default 0) so that the backward pass
+  does not recompute it (one product and one ``exp`` per step); wherever a kept ``Q`` was
+  overwritten since its forward pass, the backward pass recomputes ``Q`` into scratch instead.
 * Both passes walk the output pairs in blocks whose ``Q`` fits a core's L2 cache
   (:data:`BLOCK_BYTES`): a block is produced, and every product that reads it runs, before the next
   block, so that only the first touch of ``Q`` goes to memory (the arithmetic is unchanged: J and
@@ -53,6 +57,8 @@ Implementation notes (all float64, vectorised over outputs and basis points):
 
 from __future__ import annotations
 
+import functools
+import importlib.util
 import math
 import os
 from functools import lru_cache
@@ -60,6 +66,31 @@ from functools import lru_cache
 import torch
 
 from plugins.pilco.posterior import GPPosterior
+
+#: implementations of the Q contraction: ``torch`` (the reference, always available) and ``numba``
+#: (:mod:`plugins.pilco.fused`: compiled backward pass, extra ``fast``)
+KERNELS = ("torch", "numba")
+
+
+def numba_available() -> bool:
+    """Whether the compiled kernels can be used (numba installed, ``HARNESS_NO_JIT`` unset)."""
+    return not os.environ.get("HARNESS_NO_JIT") and importlib.util.find_spec("numba") is not None
+
+
+#: environment variable naming the kernel that ``auto`` means (for benchmarks and users comparing them)
+KERNEL_ENV = "HARNESS_PILCO_KERNEL"
+
+
+def resolve_kernel(kernel: str | None) -> str:
+    """``None``/``"auto"``: ``$HARNESS_PILCO_KERNEL`` if set, else ``numba`` where available, else
+    ``torch``; a named kernel is checked and returned. Raises ``ValueError`` with the fix."""
+    if kernel in (None, "auto"):
+        kernel = os.environ.get(KERNEL_ENV) or ("numba" if numba_available() else "torch")
+    if kernel not in KERNELS:
+        raise ValueError(f"unknown kernel {kernel!r}; expected auto or one of {KERNELS}")
+    if kernel == "numba" and not numba_available():
+        raise ValueError("kernel 'numba' needs numba (pip install '.[fast]') and HARNESS_NO_JIT unset")
+    return kernel
 
 
 @lru_cache(maxsize=32)
@@ -78,9 +109,12 @@ def _pair_indices(num_outputs: int) -> tuple[torch.Tensor, torch.Tensor, torch.T
 
 
 #: memory one :class:`MomentMatchingGP` may hold for the ``Q`` of a rollout's steps between its
-#: forward and backward pass (default 3 GiB: the unicycle's 67 steps at n = 300 take 2.65 GB);
-#: environment variable ``HARNESS_PILCO_KEEP_Q_MB``, 0 = always recompute
-KEEP_Q_BYTES = int(float(os.environ.get("HARNESS_PILCO_KEEP_Q_MB", "3072")) * 2**20)
+#: forward and backward pass; environment variable ``HARNESS_PILCO_KEEP_Q_MB``. Default 0: always
+#: recompute. Keeping them (up to 2.65 GB for the unicycle's 67 steps at n = 300) streams every
+#: ``Q`` through memory twice, and on this project's machines that measured slower than recomputing
+#: it from cache: J + dJ 1.2-1.5x slower with the torch kernel, 1.07-1.14x with numba
+#: (double pendulum and unicycle, benchmarks/compare_objective.py, 2026-11-25)
+KEEP_Q_BYTES = int(float(os.environ.get("HARNESS_PILCO_KEEP_Q_MB", "0")) * 2**20)
 
 
 class _Workspace:
@@ -137,10 +171,15 @@ class _Workspace:
 BLOCK_BYTES = int(float(os.environ.get("HARNESS_PILCO_BLOCK_KB", "1024")) * 2**10)
 
 
+def _pair_block_size(n: int, itemsize: int) -> int:
+    """Pairs per block: as many ``(n, n)`` blocks of ``Q`` as fit :data:`BLOCK_BYTES` (at least one)."""
+    return max(1, BLOCK_BYTES // max(1, n * n * itemsize))
+
+
 def _pair_blocks(p: int, n: int, itemsize: int) -> list[tuple[int, int]]:
     """``[(start, stop), ...]`` covering the ``p`` pairs, each block's ``Q`` at most :data:`BLOCK_BYTES`
     (at least one pair per block)."""
-    size = max(1, BLOCK_BYTES // max(1, n * n * itemsize))
+    size = _pair_block_size(n, itemsize)
     return [(s, min(s + size, p)) for s in range(0, p, size)]
 
 
@@ -287,7 +326,16 @@ class MomentMatchingGP:
     (``T = (I - B_ab^-1) * inv_dd / 2``: ``I - B^-1`` first, which is exact where it cancels).
     """
 
-    def __init__(self, posterior: GPPosterior) -> None:
+    def __init__(self, posterior: GPPosterior, kernel: str | None = None, threads: int = 1) -> None:
+        self.kernel = resolve_kernel(kernel)
+        self.threads = max(1, int(threads))
+        if self.kernel == "numba":
+            from plugins.pilco import fused
+
+            self._contract_forward = functools.partial(fused.forward, threads=self.threads, block=_pair_block_size)
+            self._contract_backward = functools.partial(fused.backward, threads=self.threads, block=_pair_block_size)
+        else:
+            self._contract_forward, self._contract_backward = _contract_forward, _contract_backward
         self.posterior = posterior
         beta = posterior.beta
         self.num_outputs = e = beta.shape[0]
@@ -330,7 +378,7 @@ class MomentMatchingGP:
         """
         if torch.is_grad_enabled() and (self.has_grad or m.requires_grad or S.requires_grad):
             return _MomentsFunction.apply(m, S, self, mean_only, *self.constants)
-        return self._forward(m, S, mean_only, contract=_contract_forward)[0]
+        return self._forward(m, S, mean_only, contract=self._contract_forward)[0]
 
     def forward(self, m: torch.Tensor, S: torch.Tensor, mean_only: bool = False, slot: int | None = None):
         """:meth:`predict` without autograd, for callers with their own backward pass.
@@ -339,7 +387,7 @@ class MomentMatchingGP:
         :meth:`backward` needs. ``slot``: keep this prediction's ``Q (P, n, n)`` for the backward pass
         in the workspace's buffer ``slot`` (one per time step of a rollout; see :class:`_Workspace`).
         """
-        return self._forward(m, S, mean_only, contract=_contract_forward, slot=slot)
+        return self._forward(m, S, mean_only, contract=self._contract_forward, slot=slot)
 
     def backward(self, saved, gM: torch.Tensor, gV: torch.Tensor, gC: torch.Tensor, mean_only: bool, needs):
         """Gradients wrt ``(m, S, *self.constants)`` of a loss with gradients ``gM (E,)``,
@@ -409,7 +457,7 @@ class MomentMatchingGP:
         g_quad = torch.zeros(p, dtype=gV.dtype).index_add_(0, self.full, gV.reshape(-1))
         g_trace = None if mean_only else -gV.diagonal()
         gM = gM - (gV + gV.T) @ M
-        grad_left, grad_right, g_beta_a, g_beta_b, g_inv_k = _contract_backward(
+        grad_left, grad_right, g_beta_a, g_beta_b, g_inv_k = self._contract_backward(
             left, right, self.beta_a, self.beta_b, inv_k, q_wr, g_quad, g_trace, self.workspace,
             (True, True, need_c["beta_a"], need_c["beta_b"], need_c["inv_k"] and not mean_only),
             Q=self.workspace.kept(kept),
@@ -472,7 +520,7 @@ class _MomentsFunction(torch.autograd.Function):
 
     @staticmethod
     def forward(ctx, m, S, gp: MomentMatchingGP, mean_only: bool, *constants):
-        (M, V, C), saved = gp._forward(m, S, mean_only, contract=_contract_forward)
+        (M, V, C), saved = gp._forward(m, S, mean_only, contract=gp._contract_forward)
         # ``ctx.saved`` is a plain attribute (not save_for_backward): holding the output M itself
         # would make a reference cycle through the C++ graph that Python's GC cannot free (it
         # leaked ~17 MB per J+dJ at n = 80 and OOM-killed a cart-pole run); keep a detached alias.

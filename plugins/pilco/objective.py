@@ -38,6 +38,8 @@ class PolicyObjective:
         policy_noise_std: ``(D,)`` std of the measurement noise the policy will act through, or
             ``None`` (the policy sees the latent state, as in the reference code's last version);
             see :meth:`~plugins.pilco.propagate.StateLayout.policy_noise_cov`.
+        kernel: the dynamics GP's contraction (:func:`~plugins.pilco.moments.resolve_kernel`:
+            ``None``/``"auto"``, ``"numba"``, ``"torch"``); ``threads``: threads it may use.
     """
 
     def __init__(
@@ -52,10 +54,13 @@ class PolicyObjective:
         mean_only: bool = False,
         width: float | None = None,
         policy_noise_std=None,
+        kernel: str | None = None,
+        threads: int = 1,
     ) -> None:
         self.controller = controller
         self.posterior = posterior.detach()
-        self.dynamics = MomentMatchingGP(self.posterior)  # kept: precomputed constants, work buffers
+        # kept: precomputed constants, work buffers
+        self.dynamics = MomentMatchingGP(self.posterior, kernel=kernel, threads=threads)
         self.layout = layout
         self.cost = CostMoments(cost, width)
         self.init_mean = torch.as_tensor(np.asarray(init_mean, dtype=np.float64))

@@ -1,0 +1,364 @@
+"""The ``Q`` contraction of moment matching with compiled loops (numba; extra ``fast``).
+
+Moment matching spends most of its time on one contraction per output pair ``p``
+(:mod:`plugins.pilco.moments`; ``P`` pairs, ``n`` basis points, ``d`` GP inputs)::
+
+    Q_p[i, j] = exp(u_p[i] + v_p[j] + A_p[i] . B_p[j])                          (n, n)
+    quad_p    = w_l[p] . Q_p w_r[p],   trace_a = sum_ij inv_k_a[i, j] Q_a[i, j]   (a < E')
+
+and, in the backward pass, on the products of ``G_p = Q_p * (g_quad_p w_l w_r^T + g_trace_p inv_k)``::
+
+    gA_p = G_p B_p,  gu_p = G_p 1,  gB_p = G_p^T A_p,  gv_p = G_p^T 1,  g_w_r = g_quad_p Q_p^T w_l.
+
+The torch reference (``moments._contract_forward`` / ``_contract_backward``) forms ``G`` and
+``inv_k * Q`` as ``n x n`` matrices and streams ``Q`` through five thin matrix products, two of
+them for constant columns whose gradient nobody reads. Here:
+
+* ``Q`` is still formed by torch, a block of pairs at a time (a batched product and ``exp``:
+  MKL and SLEEF form it faster than the compiled loops written for this module measured);
+* the forward sums read each block once while it is in cache (:func:`reduce_rows`);
+* the backward kernel (``kernels(d).backward``) reads ``Q`` once, two rows at a time, forms ``G``'s
+  rows on the fly and accumulates all four products and ``g_w_r`` in the same sweep; only the
+  columns that carry a gradient are computed, and ``G`` and ``inv_k * Q`` never exist.
+
+The backward kernel is generated per input dimension ``d``: its inner loop runs over ``j``
+(contiguous, vectorised by LLVM) with ``2 d`` multiply-add accumulators in registers, which needs
+``2 d`` scalar variables in the source. :func:`kernels` writes the source for one ``d`` (the same
+template for every ``d``) to a file in :func:`cache_dir` and imports it, so that numba's on-disk
+cache keeps the compiled code across processes: a machine compiles it once per ``d`` (seconds).
+
+The kernels are compiled with :class:`NoAliasCompiler`, which tells LLVM that their array
+arguments do not overlap (the drivers allocate every array a kernel writes). Without it LLVM must
+check at run time whether the ~20 rows a loop reads and writes overlap, gives up above 8 such
+checks, and leaves the loop scalar (3x slower, measured).
+
+Threads: :func:`forward` and :func:`backward` split the pairs into ``threads`` contiguous groups
+that run on a pool of Python threads (torch single-threaded in each; the kernels release the GIL).
+Each pair is computed by one thread in a fixed order, so results do not depend on ``threads``.
+"""
+
+from __future__ import annotations
+
+import hashlib
+import importlib.util
+import os
+import sys
+import threading
+from concurrent.futures import ThreadPoolExecutor
+from pathlib import Path
+from types import ModuleType
+
+import numpy as np
+import torch
+from numba import njit
+from numba.core.compiler import CompilerBase, DefaultPassBuilder
+from numba.core.compiler_machinery import FunctionPass, register_pass
+from numba.core.untyped_passes import TranslateByteCode
+
+from plugins.pilco import moments
+
+#: fast-math flags of the kernels: reassociation (vectorised sums) and contraction (FMA); no
+#: assumptions about NaN or infinity, so a NaN in the inputs still shows in the results
+FASTMATH = {"contract", "reassoc", "nsz", "arcp"}
+
+
+@register_pass(mutates_CFG=False, analysis_only=True)
+class _ArgumentsDoNotAlias(FunctionPass):
+    """Sets numba's ``noalias`` flag: LLVM may assume the function's array arguments do not overlap."""
+
+    _name = "pilco_arguments_do_not_alias"
+
+    def __init__(self) -> None:
+        FunctionPass.__init__(self)
+
+    def run_pass(self, state) -> bool:
+        state.flags.noalias = True
+        return False
+
+
+class NoAliasCompiler(CompilerBase):
+    """numba's nopython pipeline with :class:`_ArgumentsDoNotAlias` (numba sets the same flag on the
+    loop bodies of ``parallel=True`` functions whose arrays it proves distinct)."""
+
+    def define_pipelines(self):
+        pm = DefaultPassBuilder.define_nopython_pipeline(self.state)
+        pm.add_pass_after(_ArgumentsDoNotAlias, TranslateByteCode)
+        pm.finalize()
+        return [pm]
+
+
+@njit(fastmath=FASTMATH, nogil=True, cache=True, pipeline_class=NoAliasCompiler)
+def reduce_rows(Q, first, wl, wr, inv_k, quad, trace, q_wr):
+    """The forward sums of pairs ``first .. first + len(Q) - 1`` (one read of their ``Q``).
+
+    ``q_wr[p] = Q_p w_r[p]`` ``(n,)``, ``quad[p] = w_l[p] . q_wr[p]`` and, for ``p < len(inv_k)``,
+    ``trace[p] = sum_ij inv_k[p, i, j] Q_p[i, j]``.
+    """
+    n = Q.shape[1]
+    ntrace = inv_k.shape[0]
+    for pb in range(Q.shape[0]):
+        p = first + pb
+        sq = 0.0
+        st = 0.0
+        for i in range(n):
+            s = 0.0
+            for j in range(n):
+                s += Q[pb, i, j] * wr[p, j]
+            q_wr[p, i] = s
+            sq += wl[p, i] * s
+            if p < ntrace:
+                t = 0.0
+                for j in range(n):
+                    t += Q[pb, i, j] * inv_k[p, i, j]
+                st += t
+        quad[p] = sq
+        if p < ntrace:
+            trace[p] = st
+
+
+_HEADER = '''"""Generated by plugins/pilco/fused.py for input dimension d = {d}: do not edit."""
+from numba import njit
+
+from plugins.pilco.fused import NoAliasCompiler
+
+FASTMATH = {fastmath}
+'''
+
+_BACKWARD = '''
+@njit(fastmath=FASTMATH, nogil=True, cache=True, pipeline_class=NoAliasCompiler)
+def backward(Q, first, A, Bt, wl, wr, inv_k, g_quad, g_trace, need_wr, gA, gu, gBv, gwr):
+    \"\"\"Gradients of pairs first .. first + len(Q) - 1 through G = Q * (g_quad w_l w_r^T + g_trace inv_k),
+    two rows of Q at a time. Writes their gA (n, d), gu (n,), gBv (d + 1, n) = [gB^T; gv] and, when
+    need_wr, gwr (n,).\"\"\"
+    n = Q.shape[1]
+    ntrace = inv_k.shape[0]
+    for pb in range(Q.shape[0]):
+        p = first + pb
+        for c in range({d} + 1):
+            for j in range(n):
+                gBv[p, c, j] = 0.0
+        for j in range(n):
+            gwr[p, j] = 0.0
+        gq = g_quad[p]
+        gt = g_trace[p] if p < ntrace else 0.0
+        for i0 in range(0, n, 2):
+            # the second row of the last pair of rows of an odd n repeats the first with weight 0
+            two = i0 + 1 < n
+            i1 = i0 + 1 if two else i0
+            c0 = gq * wl[p, i0]
+            c1 = gq * wl[p, i1] if two else 0.0
+            t1 = gt if two else 0.0
+{load_a01}
+{zero_acc}
+            su0 = 0.0
+            su1 = 0.0
+            if p < ntrace:
+                for j in range(n):
+                    g0 = Q[pb, i0, j] * (c0 * wr[p, j] + gt * inv_k[p, i0, j])
+                    g1 = Q[pb, i1, j] * (c1 * wr[p, j] + t1 * inv_k[p, i1, j])
+{body}
+            else:
+                for j in range(n):
+                    w = wr[p, j]
+                    g0 = Q[pb, i0, j] * (c0 * w)
+                    g1 = Q[pb, i1, j] * (c1 * w)
+{body}
+{store_acc}
+            gu[p, i0] = su0
+            if two:
+                gu[p, i1] = su1
+            if need_wr:
+                w0 = wl[p, i0]
+                w1 = wl[p, i1] if two else 0.0
+                for j in range(n):
+                    gwr[p, j] += Q[pb, i0, j] * w0 + Q[pb, i1, j] * w1
+        if need_wr:
+            for j in range(n):
+                gwr[p, j] *= gq
+'''
+
+
+def source(d: int) -> str:
+    """The kernels' Python source for input dimension ``d``."""
+    if d < 1:
+        raise ValueError(f"input dimension must be >= 1, got {d}")
+    cs = range(d)
+
+    def lines(template: str, indent: int) -> str:
+        return "\n".join(" " * indent + template.format(c=c) for c in cs)
+
+    body = "\n".join(
+        [" " * 20 + f"b{c} = Bt[p, {c}, j]" for c in cs]
+        + [" " * 20 + f"s0_{c} += g0 * b{c}" for c in cs]
+        + [" " * 20 + f"s1_{c} += g1 * b{c}" for c in cs]
+        + [" " * 20 + f"gBv[p, {c}, j] += g0 * a0_{c} + g1 * a1_{c}" for c in cs]
+        + [" " * 20 + "su0 += g0", " " * 20 + "su1 += g1", " " * 20 + f"gBv[p, {d}, j] += g0 + g1"]
+    )
+    return _HEADER.format(d=d, fastmath="{" + ", ".join(repr(f) for f in sorted(FASTMATH)) + "}") + _BACKWARD.format(
+        d=d,
+        load_a01=lines("a0_{c} = A[p, i0, {c}]", 12) + "\n" + lines("a1_{c} = A[p, i1, {c}]", 12),
+        zero_acc=lines("s0_{c} = 0.0", 12) + "\n" + lines("s1_{c} = 0.0", 12),
+        body=body,
+        store_acc=lines("gA[p, i0, {c}] = s0_{c}", 12) + "\n" + " " * 12 + "if two:\n" + lines("gA[p, i1, {c}] = s1_{c}", 16),
+    )
+
+
+def cache_dir() -> Path:
+    """Where the generated sources (and numba's cache of them) live: ``$HARNESS_KERNEL_CACHE``, else
+    ``$XDG_CACHE_HOME/pilco-harness/kernels`` (``~/.cache/...``)."""
+    if os.environ.get("HARNESS_KERNEL_CACHE"):
+        return Path(os.environ["HARNESS_KERNEL_CACHE"])
+    base = Path(os.environ.get("XDG_CACHE_HOME") or Path.home() / ".cache")
+    return base / "pilco-harness" / "kernels"
+
+
+_modules: dict[int, ModuleType] = {}
+_lock = threading.Lock()
+
+
+def kernels(d: int) -> ModuleType:
+    """The compiled kernels (``forward``, ``backward``) for input dimension ``d``.
+
+    The source is written once per ``d`` under :func:`cache_dir` (named by its hash, so a change of
+    the template makes a new file) and imported; numba compiles it at the first call and caches the
+    machine code next to it.
+    """
+    with _lock:
+        module = _modules.get(d)
+        if module is not None:
+            return module
+        text = source(d)
+        digest = hashlib.sha256(text.encode()).hexdigest()[:12]
+        folder = cache_dir()
+        folder.mkdir(parents=True, exist_ok=True)
+        path = folder / f"qkernel_d{d}_{digest}.py"
+        if not path.exists():
+            tmp = path.with_suffix(f".{os.getpid()}.tmp")
+            tmp.write_text(text)
+            os.replace(tmp, path)  # atomic: concurrent processes write the same text
+        name = f"_pilco_qkernel_d{d}_{digest}"
+        spec = importlib.util.spec_from_file_location(name, path)
+        module = importlib.util.module_from_spec(spec)
+        sys.modules[name] = module
+        spec.loader.exec_module(module)
+        _modules[d] = module
+        return module
+
+
+
+# ---------------------------------------------------------------------------------------------
+# drivers: the arguments and results of moments._contract_forward / _contract_backward
+# ---------------------------------------------------------------------------------------------
+
+_pools: dict[int, ThreadPoolExecutor] = {}
+
+
+def _run(groups: list[tuple[int, int]], work) -> None:
+    """``work(g, start, stop)`` for every group of pairs: inline for one group, else on a pool of
+    ``len(groups)`` threads (each with single-threaded torch)."""
+    if len(groups) == 1:
+        work(0, *groups[0])
+        return
+    with _lock:
+        pool = _pools.get(len(groups))
+        if pool is None:
+            pool = _pools[len(groups)] = ThreadPoolExecutor(
+                len(groups), thread_name_prefix="pilco-contraction", initializer=torch.set_num_threads, initargs=(1,))
+    for future in [pool.submit(work, g, s, t) for g, (s, t) in enumerate(groups)]:
+        future.result()
+
+
+def pair_groups(num_pairs: int, num_traced: int, threads: int) -> list[tuple[int, int]]:
+    """At most ``threads`` contiguous ranges covering ``0 .. num_pairs - 1`` with about equal work (a
+    pair with a trace term, ``p < num_traced``, counts 1.5: it also reads ``inv_k``)."""
+    groups = max(1, min(int(threads), num_pairs))
+    cost = np.cumsum(np.where(np.arange(num_pairs) < num_traced, 1.5, 1.0))
+    cuts = [0] + [int(np.searchsorted(cost, cost[-1] * g / groups)) + 1 for g in range(1, groups)] + [num_pairs]
+    cuts = sorted(set(min(max(c, 0), num_pairs) for c in cuts))
+    return [(a, b) for a, b in zip(cuts[:-1], cuts[1:]) if a < b]
+
+
+def _block_size(block, n: int, itemsize: int, groups: int) -> int:
+    """``block``: pairs per block, or a function ``(n, itemsize) -> pairs``. With several groups
+    (threads) each group forms its ``Q`` at once instead: the per-block Python glue holds the GIL,
+    and with two threads fewer, larger blocks measured ~10 % faster, with one ~8 % slower
+    (double pendulum, benchmarks/compare_objective.py)."""
+    if groups > 1:
+        return 1 << 30
+    return max(1, int(block(n, itemsize) if callable(block) else block))
+
+
+def _numpy(t: torch.Tensor) -> np.ndarray:
+    return t.detach().numpy()
+
+
+def forward(left, right, w_left, w_right, inv_k, workspace, out=None, threads: int = 1, block=1):
+    """``quad (P,)``, ``trace (E',)``, ``Q w_right (P, n)``; ``Q`` into ``out`` (kept) if given.
+
+    ``left, right (P, n, d + 2)`` with ``Q_p = exp(left_p right_p^T)``, formed ``block`` pairs at a
+    time (a number or a function ``(n, itemsize) -> pairs``) into ``out`` or the workspace's scratch."""
+    p, n = left.shape[0], left.shape[1]
+    e = inv_k.shape[0]
+    quad, trace, q_wr = np.empty(p), np.empty(e), np.empty((p, n))
+    wl, wr, ik = _numpy(w_left), _numpy(w_right), _numpy(inv_k)
+    groups = pair_groups(p, e, threads)
+    size = _block_size(block, n, left.element_size(), len(groups))
+
+    def work(g: int, start: int, stop: int) -> None:
+        for s in range(start, stop, size):
+            t = min(s + size, stop)
+            Q = out[s:t] if out is not None else workspace.buffer(f"Q{g}", (t - s, n, n), left.dtype)
+            moments._exp_bilinear(left[s:t], right[s:t], Q)
+            reduce_rows(_numpy(Q), s, wl, wr, ik, quad, trace, q_wr)
+
+    _run(groups, work)
+    return torch.from_numpy(quad), torch.from_numpy(trace), torch.from_numpy(q_wr)
+
+
+def backward(left, right, w_left, w_right, inv_k, q_wr, g_quad, g_trace, workspace, needs, Q=None,
+             threads: int = 1, block=1):
+    """Gradients wrt ``(left, right, w_left, w_right, inv_k)`` as ``moments._contract_backward``
+    returns them (``None`` where not needed; the constant columns of ``left``/``right`` get 0).
+
+    ``Q``: the forward pass's kept ``Q (P, n, n)``, or ``None`` to recompute it ``block`` pairs at a
+    time into the workspace's scratch."""
+    p, n, k = left.shape
+    d = k - 2
+    e = inv_k.shape[0] if g_trace is not None else 0
+    kernel = kernels(d).backward
+    A = np.ascontiguousarray(_numpy(left)[..., :d])  # numba's loops over strided arrays are ~3x slower
+    Bt = _numpy(right[..., :d].transpose(1, 2).contiguous())
+    wl, wr, ik = _numpy(w_left), _numpy(w_right), _numpy(inv_k[:e])
+    gq = _numpy(g_quad) if g_quad is not None else np.zeros(p)
+    gt = _numpy(g_trace[:e]) if e > 0 else np.zeros(0)
+    gA, gu, gBv, gwr = np.empty((p, n, d)), np.empty((p, n)), np.empty((p, d + 1, n)), np.empty((p, n))
+    need_wr = bool(needs[3])
+    groups = pair_groups(p, e, threads)
+    size = _block_size(block, n, left.element_size(), len(groups))
+
+    def work(g: int, start: int, stop: int) -> None:
+        if Q is not None:
+            kernel(_numpy(Q[start:stop]), start, A, Bt, wl, wr, ik, gq, gt, need_wr, gA, gu, gBv, gwr)
+            return
+        for s in range(start, stop, size):
+            t = min(s + size, stop)
+            Qb = workspace.buffer(f"Q{g}", (t - s, n, n), left.dtype)
+            moments._exp_bilinear(left[s:t], right[s:t], Qb)
+            kernel(_numpy(Qb), s, A, Bt, wl, wr, ik, gq, gt, need_wr, gA, gu, gBv, gwr)
+
+    _run(groups, work)
+    grad_left = torch.zeros(p, n, k, dtype=left.dtype)
+    grad_left[..., :d] = torch.from_numpy(gA)
+    grad_left[..., d] = torch.from_numpy(gu)
+    grad_right = torch.zeros(p, n, k, dtype=left.dtype)
+    grad_right[..., :d] = torch.from_numpy(gBv[:, :d]).mT
+    grad_right[..., d + 1] = torch.from_numpy(gBv[:, d])
+    grad_wl = torch.as_tensor(q_wr) * torch.from_numpy(gq)[:, None] if needs[2] else None
+    grad_wr = torch.from_numpy(gwr) if need_wr else None
+    grad_inv = None
+    if e > 0 and needs[4]:  # dJ/d inv_k = g_trace * Q on the traced pairs (posteriors with gradients only)
+        grad_inv = torch.empty(inv_k.shape, dtype=left.dtype)
+        for a in range(e):
+            Qa = Q[a] if Q is not None else moments._exp_bilinear(left[a : a + 1], right[a : a + 1], torch.empty(1, n, n, dtype=left.dtype))[0]
+            torch.mul(Qa, g_trace[a], out=grad_inv[a])
+    return grad_left, grad_right, grad_wl, grad_wr, grad_inv

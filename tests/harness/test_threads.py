@@ -1,0 +1,44 @@
+"""harness.threads: the harness decides how many threads a run uses."""
+
+from __future__ import annotations
+
+import os
+
+import pytest
+import torch
+
+from harness import threads
+
+
+def test_run_threads_defaults_to_the_cores_and_follows_the_variable(monkeypatch) -> None:
+    monkeypatch.delenv(threads.ENV, raising=False)
+    assert threads.run_threads() == threads.available_cores() == len(os.sched_getaffinity(0))
+    monkeypatch.setenv(threads.ENV, "3")
+    assert threads.run_threads() == 3
+
+
+@pytest.mark.parametrize("value", ["0", "-2", "two"])
+def test_a_bad_value_is_one_line_naming_the_variable(monkeypatch, value) -> None:
+    monkeypatch.setenv(threads.ENV, value)
+    with pytest.raises(ValueError, match=rf"HARNESS_THREADS={value!r} is not a positive integer \(unset it"):
+        threads.run_threads()
+
+
+def test_single_threaded_sets_every_variable_and_torch(monkeypatch) -> None:
+    for var in (threads.ENV, *threads.LIBRARY_ENV):
+        monkeypatch.delenv(var, raising=False)
+    before = torch.get_num_threads()
+    try:
+        torch.set_num_threads(2)
+        threads.single_threaded()
+        assert threads.run_threads() == 1 and torch.get_num_threads() == 1
+        assert all(os.environ[v] == "1" for v in threads.LIBRARY_ENV)
+    finally:
+        torch.set_num_threads(before)
+
+
+def test_torch_threads_restores_the_previous_setting() -> None:
+    before = torch.get_num_threads()
+    with threads.torch_threads(1):
+        assert torch.get_num_threads() == 1
+    assert torch.get_num_threads() == before

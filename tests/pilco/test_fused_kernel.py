@@ -1,0 +1,186 @@
+"""The compiled contraction (plugins.pilco.fused) against the torch reference (moments._contract_*).
+
+Same inputs, same maths: the forward sums and every gradient the moment-matching backward pass
+reads must agree to round-off (1e-12 relative), with and without the trace term, with and without
+the ``w_right`` gradient, with a kept or a recomputed ``Q``, for odd and even ``n`` (the backward
+kernel takes rows two at a time) and for several input dimensions (one generated kernel each).
+Results must not depend on the number of threads (each pair is summed by one thread, in order).
+The whole objective's J and dJ with either kernel are compared in test_objective_kernels below.
+"""
+
+from __future__ import annotations
+
+import numpy as np
+import pytest
+import torch
+
+pytest.importorskip("numba")
+
+from plugins.pilco import fused, moments  # noqa: E402
+from tests.pilco.random_gp import DT  # noqa: E402
+
+torch.set_num_threads(1)
+
+
+def _contraction_inputs(num_outputs: int, n: int, d: int, seed: int):
+    """``left, right (P, n, d + 2)`` shaped as moment matching builds them (``[A, u, 1]``,
+    ``[B, 1, v]``), weights, a symmetric ``inv_k``, and upstream gradients."""
+    gen = torch.Generator().manual_seed(seed)
+    p = num_outputs * (num_outputs + 1) // 2
+    A = 0.3 * torch.randn(p, n, d, generator=gen, dtype=DT)
+    B = torch.randn(p, n, d, generator=gen, dtype=DT)
+    u = -1.0 - torch.rand(p, n, generator=gen, dtype=DT)
+    v = -1.0 - torch.rand(p, n, generator=gen, dtype=DT)
+    ones = torch.ones(p, n, 1, dtype=DT)
+    left = torch.cat([A, u[..., None], ones], -1)
+    right = torch.cat([B, ones, v[..., None]], -1)
+    w_left, w_right = torch.randn(p, n, generator=gen, dtype=DT), torch.randn(p, n, generator=gen, dtype=DT)
+    K = torch.randn(num_outputs, n, n, generator=gen, dtype=DT)
+    inv_k = K + K.mT
+    g_quad, g_trace = torch.randn(p, generator=gen, dtype=DT), torch.randn(num_outputs, generator=gen, dtype=DT)
+    return left, right, w_left, w_right, inv_k, g_quad, g_trace
+
+
+def _rel(a, b) -> float:
+    return float(torch.linalg.norm(a - b) / torch.linalg.norm(b))
+
+
+@pytest.mark.parametrize("num_outputs,n,d", [(1, 7, 1), (2, 8, 3), (3, 33, 9)])
+@pytest.mark.parametrize("traced", [True, False])
+def test_forward_matches_the_torch_reference(num_outputs, n, d, traced) -> None:
+    left, right, wl, wr, inv_k, *_ = _contraction_inputs(num_outputs, n, d, seed=n + d)
+    inv_k = inv_k if traced else inv_k[:0]
+    ref = moments._contract_forward(left, right, wl, wr, inv_k, moments._Workspace())
+    got = fused.forward(left, right, wl, wr, inv_k, moments._Workspace())
+    for a, b in zip(got, ref):
+        if b.numel():
+            assert _rel(a, b) < 1e-13
+    assert got[1].shape == ref[1].shape
+
+
+@pytest.mark.parametrize("num_outputs,n,d", [(1, 7, 1), (2, 8, 3), (3, 33, 9), (4, 20, 13)])
+@pytest.mark.parametrize("traced", [True, False])
+@pytest.mark.parametrize("kept", [True, False])
+def test_backward_matches_the_torch_reference(num_outputs, n, d, traced, kept) -> None:
+    """gA, gu, gB, gv (the columns of grad_left/right that moment matching reads), g_w_left, g_w_right."""
+    left, right, wl, wr, inv_k, g_quad, g_trace = _contraction_inputs(num_outputs, n, d, seed=10 * n + d)
+    if not traced:
+        inv_k, g_trace = inv_k[:0], None
+    Q = torch.exp(left @ right.mT) if kept else None
+    q_wr = moments._contract_forward(left, right, wl, wr, inv_k, moments._Workspace())[2]
+    needs = (True, True, True, True, False)
+    ref = moments._contract_backward(left, right, wl, wr, inv_k, q_wr, g_quad, g_trace, moments._Workspace(), needs, Q=Q)
+    got = fused.backward(left, right, wl, wr, inv_k, q_wr, g_quad, g_trace, moments._Workspace(), needs, Q=Q)
+    used = {"left": [*range(d), d], "right": [*range(d), d + 1]}  # the constant columns' gradients are never read
+    assert _rel(got[0][..., used["left"]], ref[0][..., used["left"]]) < 1e-12
+    assert _rel(got[1][..., used["right"]], ref[1][..., used["right"]]) < 1e-12
+    assert _rel(got[2], ref[2]) < 1e-12 and _rel(got[3], ref[3]) < 1e-12
+    assert got[4] is None
+
+
+def test_backward_gradient_of_inv_k_and_skipped_w_right() -> None:
+    """``g_inv_k = g_trace Q`` where asked for (posteriors with gradients); no ``g_w_right`` where not."""
+    left, right, wl, wr, inv_k, g_quad, g_trace = _contraction_inputs(2, 9, 2, seed=3)
+    q_wr = moments._contract_forward(left, right, wl, wr, inv_k, moments._Workspace())[2]
+    needs = (True, True, False, False, True)
+    ref = moments._contract_backward(left, right, wl, wr, inv_k, q_wr, g_quad, g_trace, moments._Workspace(), needs)
+    got = fused.backward(left, right, wl, wr, inv_k, q_wr, g_quad, g_trace, moments._Workspace(), needs)
+    assert got[2] is None and got[3] is None
+    assert _rel(got[4], ref[4]) < 1e-13
+
+
+@pytest.mark.parametrize("threads", [2, 3, 8])
+def test_results_do_not_depend_on_the_number_of_threads(threads) -> None:
+    left, right, wl, wr, inv_k, g_quad, g_trace = _contraction_inputs(4, 21, 5, seed=7)
+    needs = (True, True, True, True, False)
+
+    def both(t):
+        quad, trace, q_wr = fused.forward(left, right, wl, wr, inv_k, moments._Workspace(), threads=t)
+        grads = fused.backward(left, right, wl, wr, inv_k, q_wr, g_quad, g_trace, moments._Workspace(), needs, threads=t)
+        return (quad, trace, q_wr, *grads[:4])
+
+    for a, b in zip(both(1), both(threads)):
+        assert torch.equal(a, b)
+
+
+@pytest.mark.parametrize("pairs,traced,threads", [(21, 6, 2), (55, 10, 2), (10, 4, 3), (1, 1, 2), (3, 0, 8)])
+def test_pair_groups_tile_the_pairs_with_balanced_work(pairs, traced, threads) -> None:
+    groups = fused.pair_groups(pairs, traced, threads)
+    assert groups[0][0] == 0 and groups[-1][1] == pairs
+    assert all(a < b for a, b in groups) and all(g[1] == h[0] for g, h in zip(groups, groups[1:]))
+    assert len(groups) == min(threads, pairs)
+    cost = [sum(1.5 if q < traced else 1.0 for q in range(a, b)) for a, b in groups]
+    assert max(cost) - min(cost) <= 1.5
+
+
+def test_generated_kernels_are_cached_per_dimension(tmp_path, monkeypatch) -> None:
+    """One source file per ``d`` (named by its hash) in the cache directory, imported once per process;
+    numba's compiled code is cached beside it."""
+    monkeypatch.setenv("HARNESS_KERNEL_CACHE", str(tmp_path))
+    monkeypatch.setattr(fused, "_modules", {})
+    module = fused.kernels(2)
+    assert fused.kernels(2) is module
+    files = sorted(p.name for p in tmp_path.glob("qkernel_d2_*.py"))
+    assert len(files) == 1 and module.__file__.endswith(files[0])
+    assert "s0_1 += g0 * b1" in (tmp_path / files[0]).read_text()
+    left, right, wl, wr, inv_k, g_quad, g_trace = _contraction_inputs(1, 4, 2, seed=0)
+    q_wr = torch.zeros(1, 4, dtype=DT)
+    fused.backward(left, right, wl, wr, inv_k, q_wr, g_quad, g_trace, moments._Workspace(), (True,) * 4 + (False,))
+    assert list(tmp_path.rglob("*.nbi")), "numba's cache index was not written next to the source"
+    with pytest.raises(ValueError, match="input dimension"):
+        fused.source(0)
+
+
+def test_kernel_names_resolve_or_fail_with_the_fix(monkeypatch) -> None:
+    monkeypatch.delenv(moments.KERNEL_ENV, raising=False)
+    assert moments.resolve_kernel("auto") == "numba"
+    assert moments.resolve_kernel("torch") == "torch"
+    monkeypatch.setenv(moments.KERNEL_ENV, "torch")
+    assert moments.resolve_kernel(None) == "torch"
+    with pytest.raises(ValueError, match="unknown kernel 'cuda'"):
+        moments.resolve_kernel("cuda")
+    monkeypatch.setenv("HARNESS_NO_JIT", "1")
+    with pytest.raises(ValueError, match=r"pip install '\.\[fast\]'"):
+        moments.resolve_kernel("numba")
+    monkeypatch.delenv(moments.KERNEL_ENV)
+    assert moments.resolve_kernel("auto") == "torch"
+
+
+def _task_objective(task: str, options: dict, n: int, horizon: int):
+    import importlib.util
+    from pathlib import Path
+
+    path = Path(__file__).resolve().parents[2] / "benchmarks" / "task_objectives.py"
+    spec = importlib.util.spec_from_file_location("task_objectives", path)
+    module = importlib.util.module_from_spec(spec)
+    spec.loader.exec_module(module)
+    return module.task_objective(task, options, n, horizon)
+
+
+@pytest.mark.parametrize("task,options,n,horizon", [
+    ("double-pendulum", {"horizon": "60"}, 150, 25),  # RBF policy: 200 centres, its own (torch) moment matching
+    ("unicycle", {"init": "code"}, 90, 15),  # linear policy, 10 outputs (55 pairs)
+    ("cartpole", {}, 60, 30),
+])
+def test_objective_is_the_same_with_either_kernel(task, options, n, horizon) -> None:
+    """The dynamics GP's contraction, torch or numba: J to 1e-10 and dJ to 2e-7 relative, and dJ's
+    difference at most a fifth of the objective's own change when theta moves by 1-2 ulps (two
+    implementations that round differently cannot agree more closely than that) or 1e-12; 2 threads give
+    exactly the 1-thread result. (benchmarks/compare_objective.py checks the issue's 1e-7 at the
+    benchmark sizes.)"""
+    from plugins.pilco.moments import MomentMatchingGP
+
+    obj = _task_objective(task, options, n, horizon)
+    theta = obj.get_flat()
+    results = {}
+    for kernel, threads in (("torch", 1), ("numba", 1), ("numba", 2)):
+        obj.dynamics = MomentMatchingGP(obj.posterior, kernel=kernel, threads=threads)
+        results[kernel, threads] = obj(theta)
+    (J_t, g_t), (J_n, g_n), (J_2, g_2) = results.values()
+    nudged = theta * (1 + np.finfo(float).eps * np.random.default_rng(0).choice([-2.0, -1.0, 1.0, 2.0], theta.shape))
+    obj.dynamics = MomentMatchingGP(obj.posterior, kernel="torch")
+    _, g_ulp = obj(nudged)
+    assert abs(J_n - J_t) <= 1e-10 * abs(J_t)
+    assert np.linalg.norm(g_n - g_t) <= 2e-7 * np.linalg.norm(g_t)
+    assert np.linalg.norm(g_n - g_t) <= max(0.2 * np.linalg.norm(g_ulp - g_t), 1e-12 * np.linalg.norm(g_t))
+    assert J_2 == J_n and np.array_equal(g_2, g_n)
