@@ -107,15 +107,18 @@ def load_checkpoint(path: Path) -> Checkpoint:
     return checkpoint
 
 
-def identity_mismatch(saved: dict[str, Any], current: dict[str, Any], defaults: dict[str, Any] | None = None) -> str | None:
+def identity_mismatch(saved: dict[str, Any], current: dict[str, Any], defaults: dict[str, Any] | None = None,
+                      ignore: set[str] | None = None) -> str | None:
     """A one-line description of the first differences between two run identities, or ``None``.
 
     ``defaults``: the current options' defaults (identity keys); a key the checkpoint lacks whose
     current value is its default is an option added since the run started, not a difference.
+    ``ignore``: keys that are no difference whatever their values (execution options, which older
+    checkpoints hold in their identity).
     """
     defaults = defaults or {}
     added = {k for k in set(current) - set(saved) if k in defaults and current[k] == defaults[k]}
-    keys = sorted((set(saved) | set(current)) - added)
+    keys = sorted((set(saved) | set(current)) - added - (ignore or set()))
     diffs = [f"{k}: checkpoint {saved.get(k)!r} vs now {current.get(k)!r}" for k in keys if saved.get(k) != current.get(k)]
     if not diffs:
         return None

@@ -38,6 +38,9 @@ class Option:
         help: one line shown by ``harness list --options``.
         choices: allowed values, if the option is an enumeration.
         low, high: inclusive bounds for numbers.
+        execution: how a run is executed (threads, which of two equivalent kernels), not what it
+            computes: logged with the run like every option, but not part of its identity (a
+            resume may change it) nor of its configuration (report groups and labels).
     """
 
     name: str
@@ -47,6 +50,7 @@ class Option:
     choices: tuple[Any, ...] | None = None
     low: float | None = None
     high: float | None = None
+    execution: bool = False
 
     def parse(self, raw: Any, owner: str) -> Any:
         """Convert ``raw`` (a CLI string or a Python value) to this option's type and check it."""
@@ -143,6 +147,10 @@ class OptionSet:
 
     def defaults(self) -> dict[str, Any]:
         return {name: opt.default for name, opt in self._options.items()}
+
+    def execution_names(self) -> set[str]:
+        """The options that say how a run executes, not what it is (:attr:`Option.execution`)."""
+        return {name for name, opt in self._options.items() if opt.execution}
 
     def resolve(self, values: Mapping[str, Any] | None) -> dict[str, Any]:
         """Defaults overridden by ``values``; every key checked, every value parsed."""

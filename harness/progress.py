@@ -29,10 +29,11 @@ class SilentProgress:
         pass
 
 
-def format_record(record: dict[str, Any]) -> str:
-    """``trial 3/10 | 12.0 s interaction | success 30% | eval cost 31.20 | J 25.1 | wall 42 s (GP 3 s, policy 30 s, eval 2 s)``:
-    the wall time since the run started, and where this trial's went, as far as the learner and the
-    runner log it (``model_train_seconds``, ``policy_opt_seconds``, ``eval_seconds``)."""
+def format_record(record: dict[str, Any], previous_wall: float | None = None) -> str:
+    """``trial 3/10 | 12.0 s interaction | success 30% | eval cost 31.20 | J 25.1 | wall 42 s (trial 35 s: GP 3 s, policy 30 s, eval 2 s)``:
+    the wall time since the run started, this trial's (since ``previous_wall``, the wall time at the
+    last hand-over, when given) and where it went, as far as the learner and the runner log it
+    (``model_train_seconds``, ``policy_opt_seconds``, ``eval_seconds``)."""
     parts = [f"trial {record['trial']}" + (f"/{record['max_trials']}" if record.get("max_trials") else "")]
     parts.append(f"{record['interaction_seconds']:.1f} s interaction")
     parts.append(f"success {100 * record['eval_success_rate']:.0f}%")
@@ -42,7 +43,12 @@ def format_record(record: dict[str, Any]) -> str:
             parts.append(f"{label} {record[key]:.2f}")
     split = [f"{label} {record[key]:.0f} s" for key, label in
              (("model_train_seconds", "GP"), ("policy_opt_seconds", "policy"), ("eval_seconds", "eval")) if key in record]
-    parts.append(f"wall {record['wall_seconds']:.0f} s" + (f" ({', '.join(split)})" if split else ""))
+    if previous_wall is not None:
+        split.insert(0, f"trial {record['wall_seconds'] - previous_wall:.0f} s" + (":" if split else ""))
+        detail = split[0] + (" " + ", ".join(split[1:]) if len(split) > 1 else "")
+    else:
+        detail = ", ".join(split)
+    parts.append(f"wall {record['wall_seconds']:.0f} s" + (f" ({detail})" if detail else ""))
     return " | ".join(parts)
 
 
@@ -53,6 +59,7 @@ class RichProgress:
         self.console = console or Console(stderr=True)
         self._progress: Progress | None = None
         self._task = None
+        self._last_wall: float | None = None
 
     def start(self, title: str, total: float | None, unit: str) -> None:
         self._progress = Progress(
@@ -68,7 +75,8 @@ class RichProgress:
 
     def update(self, record: dict[str, Any], completed: float) -> None:
         assert self._progress is not None
-        self._progress.console.print(format_record(record), soft_wrap=True)
+        self._progress.console.print(format_record(record, self._last_wall), soft_wrap=True)
+        self._last_wall = record.get("wall_seconds")
         self._progress.update(self._task, completed=completed)
 
     def finish(self, summary: str) -> None:

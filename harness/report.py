@@ -139,8 +139,25 @@ _LIMIT_KEYS = ("max_trials", "budget_seconds", "eval_episodes")
 
 
 def run_config(params: dict[str, str]) -> dict[str, str]:
-    """The limits and resolved options among a run's params."""
-    return {k: v for k, v in params.items() if k in _LIMIT_KEYS or k.startswith(("learner.", "task."))}
+    """The limits and resolved options among a run's params, without the execution options
+    (threads, kernel: :attr:`harness.options.Option.execution`) of the installed plugins."""
+    skip = _execution_keys(params.get("learner", ""), params.get("task", ""))
+    return {k: v for k, v in params.items() if (k in _LIMIT_KEYS or k.startswith(("learner.", "task."))) and k not in skip}
+
+
+@functools.lru_cache(maxsize=None)
+def _execution_keys(learner: str, task: str) -> frozenset[str]:
+    """``learner.<k>``/``task.<k>`` of the execution options of the installed plugins (none for one
+    that is not installed here)."""
+    from harness.discovery import load_learner, load_task
+
+    keys: set[str] = set()
+    for prefix, loader, name in (("learner", load_learner, learner), ("task", load_task, task)):
+        try:
+            keys |= {f"{prefix}.{k}" for k in loader(name).option_set().execution_names()}
+        except HarnessError:
+            continue
+    return frozenset(keys)
 
 
 def _latest_total(metrics: dict[str, float], key: str) -> float:

@@ -170,15 +170,23 @@ def load_episodes(path: Path) -> list[Episode]:
 
 
 def run_identity(prep: Prepared) -> dict[str, Any]:
-    """What must be equal for a checkpoint to be resumed: learner, task, seed, options, limits."""
+    """What must be equal for a checkpoint to be resumed: learner, task, seed, options (but the
+    execution options, :attr:`~harness.options.Option.execution`), limits."""
     cfg = prep.config
     identity: dict[str, Any] = {
         "learner": cfg.learner, "task": cfg.task, "seed": cfg.seed, "eval_episodes": cfg.eval_episodes,
         "max_trials": prep.max_trials, "budget_seconds": prep.budget_seconds,
     }
-    identity.update({f"task.{k}": v for k, v in prep.task.options.items()})
-    identity.update({f"learner.{k}": v for k, v in prep.learner_options.items()})
+    skip = execution_keys(prep)
+    identity.update({f"task.{k}": v for k, v in prep.task.options.items() if f"task.{k}" not in skip})
+    identity.update({f"learner.{k}": v for k, v in prep.learner_options.items() if f"learner.{k}" not in skip})
     return identity
+
+
+def execution_keys(prep: Prepared) -> set[str]:
+    """The execution options' :func:`run_identity` keys (a checkpoint may hold them: ignored)."""
+    return ({f"task.{k}" for k in type(prep.task).option_set().execution_names()}
+            | {f"learner.{k}" for k in prep.learner_cls.option_set().execution_names()})
 
 
 def option_defaults(prep: Prepared) -> dict[str, Any]:
@@ -235,7 +243,7 @@ def run(
             raise CheckpointError(f"learner '{config.learner}' cannot resume runs; start a new run without --resume")
         tracker.resume(resume_run_id)
         checkpoint = _latest_valid_checkpoint(tracker, workdir / "resume")
-        mismatch = identity_mismatch(checkpoint.identity, identity, option_defaults(prep))
+        mismatch = identity_mismatch(checkpoint.identity, identity, option_defaults(prep), ignore=execution_keys(prep))
         if mismatch:
             tracker.finish("FAILED")
             raise CheckpointError(f"run {resume_run_id} was made with other settings ({mismatch}); resume it with the same command")

@@ -231,7 +231,8 @@ _COMMON_OPTIONS = (
     Option("gamma", float, None, "discount factor (default: task preset)", low=0.0, high=1.0),
     Option("net_width", int, None, "hidden units per layer of actor and critic (default: task preset)", low=1),
     Option("net_layers", int, None, "hidden layers of actor and critic (default: task preset)", low=1),
-    Option("torch_threads", int, 1, "torch CPU threads (1: one per worker; more oversubscribes shared cores)", low=1),
+    Option("torch_threads", int, 1, "torch CPU threads (1: one per worker; more oversubscribes shared cores)", low=1,
+           execution=True),
     Option("progress_bar", bool, False, "show SB3's own progress bar during each learn() chunk"),
 )
 

@@ -212,9 +212,9 @@ class Pilco(Learner):
         Option("policy_max_iterations", int, None, "L-BFGS iterations (~line searches) per policy search (default: task preset, 150)", low=1),
         Option("policy_max_evaluations", int, None, "J+dJ evaluations per policy search (default: task preset, 300; unicycle 150)", low=1),
         Option("threads", int, None, "CPU threads (default: the harness's choice, all cores for harness bench and 1 per "
-               "cell in a sweep; harness.threads)", low=1),
+               "cell in a sweep; harness.threads)", low=1, execution=True),
         Option("kernel", str, "auto", "moment matching's Q contraction: numba (compiled backward pass, extra 'fast'), "
-               "torch (the reference) or auto (numba where installed)", choices=("auto", "numba", "torch")),
+               "torch (the reference) or auto (numba where installed)", choices=("auto", "numba", "torch"), execution=True),
         Option("plots", bool, True, "save the predicted-vs-realised cost plot per trial"),
         Option("sample_particles", int, 500, "particles for J_sampled, the policy's cost by Monte Carlo through the same GP "
                "(checks the moment-matching J; 0 = off)", low=0),

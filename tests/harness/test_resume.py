@@ -88,6 +88,28 @@ def test_an_option_added_since_the_run_started_resumes_at_its_default(monkeypatc
     assert len(run(config, tracker=tracker, resume_run_id=tracker.run_id).history) == 3
 
 
+def test_execution_options_may_change_on_resume_and_old_checkpoints_holding_them_resume(monkeypatch):
+    """An execution option (threads, kernel: how, not what) is not part of a run's identity: a resume
+    with another value continues, and so does a checkpoint written when it still was (its identity
+    holds the key), while an ordinary option set otherwise is still refused."""
+    from harness.options import Option
+    from plugins.random_learner import RandomLearner
+
+    monkeypatch.setattr(RandomLearner, "options", RandomLearner.options + (Option("workers", int, None, "how", execution=True),))
+    config = RunConfig("random", "cartpole", seed=1, max_trials=3, eval_episodes=1, learner_options={"workers": "1"})
+    tracker = InterruptAt(3)
+    with pytest.raises(KeyboardInterrupt):
+        run(config, tracker=tracker)
+    checkpoint_path = tracker.root / tracker.list_artifacts("checkpoints")[-1]
+    old = load_checkpoint(checkpoint_path)
+    assert "learner.workers" not in old.identity
+    old.identity["learner.workers"] = 1  # as a checkpoint from before the option was an execution option
+    save_checkpoint(old, checkpoint_path)
+    other = RunConfig("random", "cartpole", seed=1, max_trials=3, eval_episodes=1, learner_options={"workers": "2"})
+    assert len(run(other, tracker=tracker, resume_run_id=tracker.run_id).history) == 3
+    assert tracker.params["learner.workers"] == "1"  # logged once, at the run's start, as every option
+
+
 def test_corrupt_checkpoint_is_detected(tmp_path):
     path = save_checkpoint(Checkpoint({"a": 1}, 1, [], {}, {}), tmp_path / "ckpt_trial001.pkl")
     assert load_checkpoint(path).trial == 1

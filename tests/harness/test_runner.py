@@ -166,6 +166,10 @@ def test_progress_line_says_where_the_trials_wall_time_went():
     assert format_record(record) == "trial 3/10 | 12.0 s interaction | success 30% | eval cost 31.20 | J 25.10 | wall 42 s"
     record.update(model_train_seconds=3.2, policy_opt_seconds=30.4, eval_seconds=1.6)
     assert format_record(record).endswith("| wall 42 s (GP 3 s, policy 30 s, eval 2 s)")
+    # after the first hand-over the line gives the trial's own wall time (since the last hand-over)
+    assert format_record(record, previous_wall=5.0).endswith("| wall 42 s (trial 37 s: GP 3 s, policy 30 s, eval 2 s)")
+    del record["model_train_seconds"], record["policy_opt_seconds"], record["eval_seconds"]
+    assert format_record(record, previous_wall=5.0).endswith("| wall 42 s (trial 37 s)")
 
 
 def test_saved_episodes_load_back_equal(tmp_path):
