@@ -94,6 +94,17 @@ PRESETS: dict[str, Preset] = {
 GENERIC = Preset()
 
 
+def preset_with(task: str, options: dict[str, Any]) -> Preset:
+    """The task's preset (:data:`PRESETS`, else :data:`GENERIC`) with the options that override its
+    entries and are set (not ``None``): ``controller``, ``num_centres``, ``initial_rollouts``,
+    ``random_scale``, ``sparse_threshold``, ``policy_max_iterations``, ``policy_max_evaluations``
+    (a learner without some of these options keeps the preset's)."""
+    preset = PRESETS.get(task, GENERIC)
+    fields = ("controller", "num_centres", "initial_rollouts", "random_scale", "sparse_threshold",
+              "policy_max_iterations", "policy_max_evaluations")
+    return replace(preset, **{k: options[k] for k in fields if options.get(k) is not None})
+
+
 def layout_for(spec: TaskSpec, preset: Preset) -> StateLayout:
     """The task's state layout: sin/cos for every angle, minus the preset's exclusions."""
     base = StateLayout.with_trig(spec.state_dim, spec.angle_indices)
@@ -164,6 +175,22 @@ def _initial_policy_input_moments(spec: TaskSpec, layout: StateLayout) -> tuple[
     return ma[idx], sa[idx[:, None], idx[None, :]]
 
 
+def initial_controller(spec: TaskSpec, preset: Preset, layout: StateLayout, squash: str | None,
+                       generator: torch.Generator) -> SquashedController:
+    """The reference's initial policy: a linear controller with small random weights, or an RBF
+    network with ``preset.num_centres`` centres drawn from the initial policy-input distribution;
+    squashed to the task's symmetric control bounds (``squash``: trapezoid, sin or None)."""
+    if not np.allclose(spec.action_low, -spec.action_high):
+        raise ValueError(f"PILCO's squashing needs symmetric control bounds; {spec.name} has {spec.action_low}..{spec.action_high}")
+    p, f = len(layout.policy_inputs), spec.action_dim
+    if preset.controller == "linear":
+        base = LinearController.initial(p, f, scale=0.01, generator=generator)
+    else:
+        mean, cov = _initial_policy_input_moments(spec, layout)
+        base = RBFController.initial(mean, cov, preset.num_centres, f, _initial_length_scales(layout), generator=generator)
+    return SquashedController(base, spec.action_high, squash)
+
+
 def next_planning_horizon(horizon: int, task_horizon: int, search, grow_below: float | None) -> int:
     """The planning horizon (steps) for the next trial: doubled, up to ``task_horizon``, when
     ``grow_below`` is set and the search just done predicts a mean cost per step ``J/horizon``
@@ -224,16 +251,7 @@ class Pilco(Learner):
         super().__init__(spec, options, seed)
         o = self.options
         preset = PRESETS.get(spec.name, GENERIC)
-        self.preset = replace(
-            preset,
-            controller=o["controller"] or preset.controller,
-            num_centres=o["num_centres"] or preset.num_centres,
-            initial_rollouts=o["initial_rollouts"] or preset.initial_rollouts,
-            random_scale=preset.random_scale if o["random_scale"] is None else o["random_scale"],
-            sparse_threshold=o["sparse_threshold"] or preset.sparse_threshold,
-            policy_max_iterations=o["policy_max_iterations"] or preset.policy_max_iterations,
-            policy_max_evaluations=o["policy_max_evaluations"] or preset.policy_max_evaluations,
-        )
+        self.preset = preset_with(spec.name, o)
         self.layout = layout_for(spec, self.preset)
         self.horizon = o["planning_horizon"] or preset.planning_horizon or spec.horizon
         self.cost_width = o["cost_width"] or preset.cost_width
@@ -257,16 +275,7 @@ class Pilco(Learner):
 
     # ---- pieces --------------------------------------------------------------------------------
     def _new_controller(self, generator: torch.Generator) -> SquashedController:
-        spec, layout = self.spec, self.layout
-        if not np.allclose(spec.action_low, -spec.action_high):
-            raise ValueError(f"PILCO's squashing needs symmetric control bounds; {spec.name} has {spec.action_low}..{spec.action_high}")
-        p, f = len(layout.policy_inputs), spec.action_dim
-        if self.preset.controller == "linear":
-            base = LinearController.initial(p, f, scale=0.01, generator=generator)
-        else:
-            mean, cov = _initial_policy_input_moments(spec, layout)
-            base = RBFController.initial(mean, cov, self.preset.num_centres, f, _initial_length_scales(layout), generator=generator)
-        return SquashedController(base, spec.action_high, self.options["squash"])
+        return initial_controller(self.spec, self.preset, self.layout, self.options["squash"], generator)
 
     def _plot_prediction(self, predicted: tuple[np.ndarray, np.ndarray], sampled: np.ndarray | None, episode: Episode,
                          path: Path, trial: int) -> Path:

@@ -1,0 +1,143 @@
+"""MC-PILCO as a harness learner: PILCO's model and controllers, policies judged by particles.
+
+Amadio, Dalla Libera, Antonello, Nikovski, Carli, Romeres: "Model-Based Policy Search Using Monte
+Carlo Gradient Estimation with Real Systems Application", IEEE T-RO 2022::
+
+    init: random rollouts (the PILCO preset's number and scale)               -> interaction
+    repeat:
+        learn the GP dynamics model on all data (PILCO's GPModel and preset)   -> plugins.pilco.gp
+        policy search: Adam on the particle estimate of J, with dropout        -> particles, optimise
+        hand the policy over (the harness evaluates it here)                   -> yield
+        apply it for one trial and record the data                             -> interaction
+
+A third party's learner in all but location: it uses the plugin API (:mod:`harness.learner`) and
+PILCO's library (GP model, controllers, presets, state layout, the transitions the GP learns), not
+PILCO's learner. Its differences from ``pilco``: the policy evaluation (particles instead of moment
+matching; no Gaussian approximation of the state distribution), the optimiser (Adam on a noisy
+estimate instead of L-BFGS on a closed form) and dropout on the RBF policy's weights during the
+search. Paper defaults: 400 particles, Adam with learning rate 0.01, dropout 0.25 reduced by 0.125
+as the search stalls, at most 1500 steps per trial (cart-pole: 2000-4000).
+"""
+
+from __future__ import annotations
+
+import copy
+import math
+import time
+from collections.abc import Iterator
+from typing import Any
+
+import numpy as np
+import torch
+
+from harness.errors import OptionError
+from harness.interaction import Interaction
+from harness.learner import Learner, Policy
+from harness.options import Option
+from harness.task import TaskSpec
+from harness.threads import run_threads
+from plugins.mc_pilco.optimise import optimise_particles
+from plugins.mc_pilco.particles import ParticleObjective
+from plugins.pilco.cost import CostMoments
+from plugins.pilco.gp import GPModel
+from plugins.pilco.learner import GENERIC, PRESETS, PilcoPolicy, initial_controller, layout_for, preset_with, transitions
+
+
+class McPilco(Learner):
+    """MC-PILCO: PILCO's GP model and controllers, a particle estimate of J, Adam with dropout."""
+
+    name = "mc-pilco"
+    description = "MC-PILCO: PILCO's GP model, policy cost by particles with reparameterised gradients (Amadio et al., T-RO 2022)"
+    supports_resume = True
+    options = (
+        Option("controller", str, None, "policy: rbf or linear (default: the PILCO task preset)", choices=(None, "rbf", "linear")),
+        Option("num_centres", int, None, "RBF centres (default: the PILCO task preset)", low=1),
+        Option("squash", str, "trapezoid", "squashing to the bounds", choices=("trapezoid", "sin")),
+        Option("initial_rollouts", int, None, "random rollouts before learning (default: the PILCO task preset)", low=1),
+        Option("random_scale", float, None, "random controls in scale * bounds (default: the PILCO task preset)", low=0.0, high=1.0),
+        Option("planning_horizon", int, None, "simulated steps per particle (default: the PILCO preset's, else the task horizon)", low=1),
+        Option("cost_width", float, None, "cost width used in planning (default: the PILCO preset's, else the task's)", low=1e-6),
+        Option("sparse_threshold", int, None, "FITC above this many data points (default: the PILCO task preset)", low=1),
+        Option("gp_max_evals", int, 300, "GP hyperparameter L-BFGS evaluations per trial", low=0),
+        Option("gp_fitc_evals", int, 100, "FITC pseudo-input L-BFGS evaluations per trial (3x the first time)", low=0),
+        Option("particles", int, 400, "particles per estimate of J (paper: 400)", low=1),
+        Option("max_steps", int, 1500, "Adam steps per policy search at most (paper: 1500; cart-pole 2000-4000)", low=1),
+        Option("lr", float, 0.01, "Adam learning rate at the start of each search (paper: 0.01)", low=1e-8),
+        Option("dropout", float, 0.25, "dropout probability on the RBF weights at the start of each search (paper: 0.25)",
+               low=0.0, high=0.9),
+        Option("dropout_step", float, 0.125, "dropout reduction when the search stalls (paper: 0.125)", low=0.0, high=1.0),
+        Option("lr_decay", float, 0.5, "learning-rate factor at each dropout reduction", low=0.0, high=1.0),
+        Option("window", int, 100, "steps per window of the monitoring signal (mean estimate)", low=1),
+        Option("min_improvement", float, 0.01, "a window mean at least this much (relative) below the one before is progress", low=0.0),
+        Option("threads", int, None, "CPU threads (default: the harness's choice; harness.threads)", low=1, execution=True),
+    )
+
+    def __init__(self, spec: TaskSpec, options: dict[str, Any] | None = None, seed: int = 0) -> None:
+        super().__init__(spec, options, seed)
+        o = self.options
+        preset = PRESETS.get(spec.name, GENERIC)
+        self.preset = preset_with(spec.name, o)
+        try:
+            self.layout = layout_for(spec, self.preset)
+        except ValueError as exc:
+            raise OptionError(f"mc-pilco on {spec.name}: {exc}") from None
+        self.horizon = o["planning_horizon"] or preset.planning_horizon or spec.horizon
+        self.cost_width = o["cost_width"] or preset.cost_width
+        self._state: dict[str, Any] = {}
+
+    @classmethod
+    def default_limits(cls, spec: TaskSpec) -> tuple[int | None, float | None]:
+        """The PILCO task preset's number of trials."""
+        return PRESETS.get(spec.name, GENERIC).max_trials, None
+
+    def learn(self, interaction: Interaction) -> Iterator[Policy]:
+        from plugins.random_learner import UniformRandomPolicy
+
+        spec, o = self.spec, self.options
+        torch.set_num_threads(o["threads"] or run_threads())
+        model = GPModel(sparse_threshold=self.preset.sparse_threshold, num_pseudo=self.preset.sparse_threshold,
+                        max_evals_full=o["gp_max_evals"], max_evals_fitc=o["gp_fitc_evals"])
+        controller = initial_controller(spec, self.preset, self.layout, o["squash"], torch.Generator().manual_seed(self.seed))
+        resumed = self._resume_state
+        if resumed is None:
+            scale = self.preset.random_scale
+            explore = UniformRandomPolicy(scale * spec.action_low, scale * spec.action_high, self.seed)
+            for _ in range(self.preset.initial_rollouts):
+                interaction.rollout(explore)
+            hyperparameters, trial = None, 0
+        else:  # continue right after the hand-over of trial `trial`
+            controller.load_state_dict(resumed["controller"])
+            hyperparameters, trial = resumed["hyperparameters"], resumed["trial"]
+        cost = CostMoments(spec.cost, self.cost_width)
+        init_mean = torch.as_tensor(np.asarray(spec.init_mean, dtype=np.float64))
+        init_cov = torch.as_tensor(np.asarray(spec.init_cov, dtype=np.float64))
+        while True:
+            if trial > 0:  # apply the policy handed over last for one trial, record the data
+                interaction.rollout(PilcoPolicy(controller, self.layout))
+            trial += 1
+            x, y = transitions(interaction.episodes, self.layout)
+            fit = model.fit(x, y, warm_start=hyperparameters, seed=self.seed + trial)
+            hyperparameters = model.hyperparameters
+            objective = ParticleObjective(controller, model.posterior().detach(), self.layout, cost, init_mean, init_cov,
+                                          self.horizon, o["particles"])
+            search = optimise_particles(objective, max_steps=o["max_steps"], lr=o["lr"], dropout=o["dropout"],
+                                        dropout_step=o["dropout_step"], lr_decay=o["lr_decay"], window=o["window"],
+                                        min_improvement=o["min_improvement"], seed=1000 * self.seed + trial)
+            self.metrics = {
+                "n_data": float(fit.n_points), "gp_sparse": float(fit.sparse), "gp_nll": fit.nll,
+                "model_train_seconds": fit.seconds, "J_before": search.J_before, "J_after": search.J_after,
+                "policy_opt_seconds": search.seconds, "policy_steps": float(search.steps),
+                "policy_skipped_steps": float(search.skipped), "dropout_reductions": float(search.reductions),
+                "final_dropout": search.final_dropout, "planning_horizon": float(self.horizon),
+                "policy_parameters": float(sum(p.numel() for p in controller.parameters())),
+            }
+            if not math.isfinite(search.J_after):
+                self.metrics["policy_search_failed"] = 1.0
+            self._state = {"controller": copy.deepcopy(controller.state_dict()), "hyperparameters": hyperparameters,
+                           "trial": trial, "time": time.time()}
+            yield PilcoPolicy(copy.deepcopy(controller), self.layout)
+
+    def state_dict(self) -> dict[str, Any]:
+        """Controller parameters, GP hyperparameters (warm start) and the trial; every random draw of a
+        trial's search is seeded by ``(seed, trial)``, so nothing else is needed to continue exactly."""
+        return {k: v for k, v in self._state.items() if k != "time"}

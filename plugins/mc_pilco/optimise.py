@@ -1,0 +1,89 @@
+"""MC-PILCO's policy optimisation: Adam on the particle estimate, with dropout reduced as it stalls.
+
+Each step draws fresh particles, model noise and dropout masks, estimates ``J_hat`` and its gradient
+(:class:`~plugins.mc_pilco.particles.ParticleObjective`) and takes one Adam step. The estimate is
+noisy, so progress is judged on window means (the paper's monitoring signal, as a windowed mean
+instead of a filtered one): when the mean of the last ``window`` estimates is not at least
+``min_improvement`` (relative) below the mean of the window before, the dropout probability drops by
+``dropout_step`` and the learning rate is multiplied by ``lr_decay``; once dropout is 0 and
+progress stalls again, or after ``max_steps``, the search ends. The parameters at the end are
+kept (the estimates are too noisy to pick a "best" step).
+"""
+
+from __future__ import annotations
+
+import math
+import time
+from dataclasses import dataclass
+
+import numpy as np
+import torch
+
+from plugins.mc_pilco.particles import ParticleObjective
+
+
+@dataclass
+class ParticleSearchResult:
+    """Outcome of :func:`optimise_particles`.
+
+    Attributes:
+        J_before, J_after: particle estimates (no dropout, the same fresh particles) at the start and
+            the end.
+        steps: Adam steps taken; skipped: steps whose estimate was not finite (no update).
+        reductions: dropout reductions; final_dropout, final_lr: their values at the end.
+        seconds: wall time; trace: window means of the estimates (with dropout), for plots.
+    """
+
+    J_before: float
+    J_after: float
+    steps: int
+    skipped: int
+    reductions: int
+    final_dropout: float
+    final_lr: float
+    seconds: float
+    trace: list[float]
+
+
+def optimise_particles(objective: ParticleObjective, *, max_steps: int, lr: float, dropout: float, dropout_step: float,
+                       lr_decay: float, window: int, min_improvement: float, seed: int) -> ParticleSearchResult:
+    """Minimise ``J_hat`` over the controller's parameters (left at the final values)."""
+    start = time.perf_counter()
+    params = [p for p in objective.controller.parameters() if p.requires_grad]
+
+    def checked() -> float:  # the same fresh particles before and after, no dropout
+        with torch.no_grad():
+            value = float(objective.value(torch.Generator().manual_seed(int(seed) + 1)))
+        return value if math.isfinite(value) else math.inf
+
+    J_before = checked()
+    opt = torch.optim.Adam(params, lr=lr)
+    gen = torch.Generator().manual_seed(int(seed))
+    estimates: list[float] = []
+    trace: list[float] = []
+    skipped = reductions = steps = 0
+    p, rate = float(dropout), float(lr)
+    for steps in range(1, int(max_steps) + 1):
+        opt.zero_grad(set_to_none=True)
+        J = objective.value(gen, p)
+        if not bool(torch.isfinite(J)):
+            skipped += 1
+            continue
+        J.backward()
+        if not all(bool(torch.isfinite(q.grad).all()) for q in params if q.grad is not None):
+            skipped += 1
+            continue
+        opt.step()
+        estimates.append(float(J.detach()))
+        if len(estimates) % window == 0:
+            trace.append(float(np.mean(estimates[-window:])))
+            if len(trace) >= 2 and trace[-2] - trace[-1] < min_improvement * abs(trace[-2]):
+                if p <= 0.0:
+                    break
+                p, rate = max(0.0, p - dropout_step), rate * lr_decay
+                reductions += 1
+                for group in opt.param_groups:
+                    group["lr"] = rate
+    return ParticleSearchResult(J_before=J_before, J_after=checked(), steps=steps,
+                                skipped=skipped, reductions=reductions, final_dropout=p, final_lr=rate,
+                                seconds=time.perf_counter() - start, trace=trace)
