@@ -170,10 +170,10 @@ class RBFController(nn.Module):
     def posterior(self) -> GPPosterior:
         """The pseudo-data GP as a :class:`GPPosterior` (inputs = centres)."""
         f = self.num_controls
-        log_alpha = torch.full((f,), math.log(RBF_SIGNAL_STD), dtype=torch.float64)
-        log_sigma = torch.full((f,), math.log(RBF_NOISE_STD), dtype=torch.float64)
+        log_alpha = self.centres.new_full((f,), math.log(RBF_SIGNAL_STD))
+        log_sigma = self.centres.new_full((f,), math.log(RBF_NOISE_STD))
         gram = se_ard(self.centres, self.centres, self.log_ell, log_alpha)  # (F, n_c, n_c)
-        gram = gram + RBF_NOISE_STD**2 * torch.eye(self.centres.shape[0], dtype=torch.float64)
+        gram = gram + RBF_NOISE_STD**2 * torch.eye(self.centres.shape[0], dtype=torch.float64, device=self.centres.device)
         chol = cholesky(gram, "RBF policy Gram matrix")
         beta = torch.cholesky_solve(self.targets.T[..., None], chol).squeeze(-1)  # (F, n_c)
         return GPPosterior(self.centres, beta, torch.cholesky_inverse(chol), self.log_ell, log_alpha, log_sigma)

@@ -59,12 +59,12 @@ def gaussian_saturation(m_r: torch.Tensor, S_r: torch.Tensor, width: float) -> t
 class CostMoments:
     """The task's :class:`SaturatingCost` as torch tensors, with its moments under Gaussian states."""
 
-    def __init__(self, cost: SaturatingCost, width: float | None = None) -> None:
+    def __init__(self, cost: SaturatingCost, width: float | None = None, device: torch.device | str | None = None) -> None:
         self.cost = cost
         self.width = float(cost.width if width is None else width)
-        self.angle_map = torch.as_tensor(cost.angle_map, dtype=torch.float64)
-        self.linear_map = torch.as_tensor(cost.linear_map, dtype=torch.float64)
-        self.target = torch.as_tensor(cost.target, dtype=torch.float64)
+        self.angle_map = torch.as_tensor(cost.angle_map, dtype=torch.float64, device=device)
+        self.linear_map = torch.as_tensor(cost.linear_map, dtype=torch.float64, device=device)
+        self.target = torch.as_tensor(cost.target, dtype=torch.float64, device=device)
 
     def sample(self, x: torch.Tensor) -> torch.Tensor:
         """The cost at known states ``x (..., D)`` -> ``(...)``, with this object's width."""

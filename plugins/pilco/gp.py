@@ -71,6 +71,11 @@ class GPHyperparameters:
     log_sigma: torch.Tensor
     pseudo_inputs: torch.Tensor | None = None
 
+    def to(self, device: torch.device | str) -> "GPHyperparameters":
+        """A copy on ``device``."""
+        z = None if self.pseudo_inputs is None else self.pseudo_inputs.detach().to(device).clone()
+        return GPHyperparameters(*(t.detach().to(device).clone() for t in (self.log_ell, self.log_alpha, self.log_sigma)), z)
+
     def clone(self) -> "GPHyperparameters":
         z = None if self.pseudo_inputs is None else self.pseudo_inputs.detach().clone()
         return GPHyperparameters(
@@ -99,7 +104,7 @@ class GPHyperparameters:
 
 def _robust_scale(values: torch.Tensor) -> torch.Tensor:
     """Per-column spread of ``values (n, k)``: std, else RMS (constant non-zero column), else 1."""
-    std = values.std(dim=0, unbiased=True) if values.shape[0] > 1 else torch.zeros(values.shape[1], dtype=DTYPE)
+    std = values.std(dim=0, unbiased=True) if values.shape[0] > 1 else values.new_zeros(values.shape[1])
     rms = values.pow(2).mean(0).sqrt()
     degenerate_std = std <= 1e-10 * (1.0 + rms)
     fallback = torch.where(rms > 0, rms, torch.ones_like(rms))
@@ -156,7 +161,7 @@ def _noisy_gram_cholesky(
     """``(E, n, n)`` lower Cholesky factors of ``K_a + sigma_a^2 I``."""
     n = inputs.shape[0]
     gram = se_ard(inputs, inputs, log_ell, log_alpha)
-    noise = torch.exp(2.0 * log_sigma)[:, None, None] * torch.eye(n, dtype=inputs.dtype)
+    noise = torch.exp(2.0 * log_sigma)[:, None, None] * torch.eye(n, dtype=inputs.dtype, device=inputs.device)
     return cholesky(gram + noise, "GP Gram matrix K + sigma^2 I")
 
 
@@ -181,7 +186,7 @@ class _NegLogMarginalLikelihood(torch.autograd.Function):
         n = inputs.shape[0]
         gram_f = se_ard(inputs, inputs, log_ell, log_alpha)  # (E, n, n)
         noise_var = torch.exp(2.0 * log_sigma)  # (E,)
-        eye = torch.eye(n, dtype=inputs.dtype)
+        eye = torch.eye(n, dtype=inputs.dtype, device=inputs.device)
         chol = cholesky(gram_f + noise_var[:, None, None] * eye, "GP Gram matrix K + sigma^2 I")
         b = torch.cholesky_solve(targets.T[..., None], chol)[..., 0]  # (E, n)
         log_det = 2.0 * torch.log(chol.diagonal(dim1=-2, dim2=-1)).sum(-1)
@@ -282,12 +287,14 @@ def minimise_lbfgsb(
     optimisation stops there and the best point so far is returned (L-BFGS-B has no safe way to
     continue: ``inf`` makes it report convergence, a made-up value misleads its line search); at
     the starting point the :class:`NumericalError` propagates. ``max_evals`` bounds function
-    evaluations (0: just evaluate at ``x0``).
+    evaluations (0: just evaluate at ``x0``). The objective is evaluated on ``x0``'s device; the
+    optimiser's vectors stay on the host (one transfer each way per evaluation).
     """
+    device = x0.device
     x0_np = x0.detach().cpu().numpy().astype(np.float64).copy()
     bounds = None
     if lower is not None and upper is not None:
-        lo, hi = lower.detach().numpy(), upper.detach().numpy()
+        lo, hi = lower.detach().cpu().numpy(), upper.detach().cpu().numpy()
         x0_np = np.clip(x0_np, lo, hi)
         bounds = list(zip(lo.tolist(), hi.tolist()))
     count = [0]
@@ -295,7 +302,7 @@ def minimise_lbfgsb(
 
     def fun(x_np: np.ndarray) -> tuple[float, np.ndarray]:
         count[0] += 1
-        x = torch.tensor(x_np, dtype=DTYPE, requires_grad=True)
+        x = torch.tensor(x_np, dtype=DTYPE, device=device, requires_grad=True)
         try:
             value = objective(x)
             (grad,) = torch.autograd.grad(value, x)
@@ -310,11 +317,11 @@ def minimise_lbfgsb(
             raise _TrialPointFailed()
         if v < best["f"]:
             best["x"], best["f"] = x_np.copy(), v
-        return v, grad.numpy().copy()
+        return v, grad.cpu().numpy().copy()
 
     if max_evals <= 0:
         value, _ = fun(x0_np)
-        return MinimiseResult(torch.tensor(x0_np, dtype=DTYPE), value, 1, 0, "no optimisation (budget 0)")
+        return MinimiseResult(torch.tensor(x0_np, dtype=DTYPE, device=device), value, 1, 0, "no optimisation (budget 0)")
     # scipy's L-BFGS-B calls BLAS on tiny vectors; a multi-threaded OpenBLAS there cost ~3 ms per
     # iteration (more than a whole n = 100 GP evaluation) on a loaded 2-core machine.
     try:
@@ -331,7 +338,7 @@ def minimise_lbfgsb(
     except _TrialPointFailed:
         iterations = -1
         message = f"STOPPED: numerical failure at trial point {count[0]}; best point so far returned"
-    return MinimiseResult(torch.tensor(best["x"], dtype=DTYPE), best["f"], count[0], iterations, message)
+    return MinimiseResult(torch.tensor(best["x"], dtype=DTYPE, device=device), best["f"], count[0], iterations, message)
 
 
 def _pack(h: GPHyperparameters) -> torch.Tensor:
@@ -463,9 +470,9 @@ class FitReport:
     messages: list[str] = field(default_factory=list)
 
 
-def _as_data(inputs, targets) -> tuple[torch.Tensor, torch.Tensor]:
-    x = torch.as_tensor(inputs, dtype=DTYPE).detach()
-    y = torch.as_tensor(targets, dtype=DTYPE).detach()
+def _as_data(inputs, targets, device: torch.device | str = "cpu") -> tuple[torch.Tensor, torch.Tensor]:
+    x = torch.as_tensor(inputs, dtype=DTYPE, device=device).detach()
+    y = torch.as_tensor(targets, dtype=DTYPE, device=device).detach()
     if x.ndim != 2 or y.ndim != 2 or x.shape[0] != y.shape[0] or x.shape[0] < 1:
         raise ValueError(f"expected inputs (n, d) and targets (n, E), got {tuple(x.shape)} and {tuple(y.shape)}")
     if not (bool(torch.isfinite(x).all()) and bool(torch.isfinite(y).all())):
@@ -496,6 +503,8 @@ class GPModel:
         curb: add the hypCurb penalty (switch off only for ablations/tests).
         restart_scale: std of the Gaussian perturbation of the log-hyperparameters per restart.
         fitc_ridge: jitter on K_mm relative to alpha^2.
+        device: where training and the posterior live (data, hyperparameters and the returned
+            posterior are on it; ``"cuda"`` for a GPU).
     """
 
     def __init__(
@@ -512,7 +521,9 @@ class GPModel:
         curb: bool = True,
         restart_scale: float = 1.0,
         fitc_ridge: float = FITC_RIDGE,
+        device: torch.device | str = "cpu",
     ) -> None:
+        self.device = torch.device(device)
         if num_pseudo < 1 or sparse_threshold < 1 or max_evals_full < 0 or max_evals_fitc < 0:
             raise ValueError("GPModel needs num_pseudo, sparse_threshold >= 1 and budgets >= 0")
         self.sparse_threshold = int(sparse_threshold)
@@ -560,15 +571,15 @@ class GPModel:
                 pseudo-inputs).
         """
         start = time.perf_counter()
-        x, y = _as_data(inputs, targets)
+        x, y = _as_data(inputs, targets, self.device)
         n, dim = x.shape
         num_outputs = y.shape[1]
-        gen = torch.Generator().manual_seed(int(seed))
+        gen = torch.Generator().manual_seed(int(seed))  # draws on the host, then moved: same numbers on every device
         sparse = self.uses_sparse(n)
         budget = self.max_evals_full if max_evals is None else int(max_evals)
 
         if sparse and n > self.hyper_subset:
-            idx = torch.randperm(n, generator=gen)[: self.hyper_subset]
+            idx = torch.randperm(n, generator=gen, device="cpu")[: self.hyper_subset].to(self.device)
             x_h, y_h = x[idx], y[idx]
         else:
             x_h, y_h = x, y
@@ -578,7 +589,7 @@ class GPModel:
                 raise ValueError(
                     f"warm start has log_ell {tuple(warm_start.log_ell.shape)}, data need {(num_outputs, dim)}"
                 )
-            init = GPHyperparameters(*(torch.as_tensor(t, dtype=DTYPE).detach().clone() for t in (
+            init = GPHyperparameters(*(torch.as_tensor(t, dtype=DTYPE, device=self.device).detach().clone() for t in (
                 warm_start.log_ell, warm_start.log_alpha, warm_start.log_sigma)))
         else:
             init = initial_hyperparameters(x_h, y_h)
@@ -589,7 +600,7 @@ class GPModel:
         for r in range(int(restarts) + 1):
             start_hyp = init
             if r > 0:
-                noise = self.restart_scale * torch.randn(_pack(init).shape, generator=gen, dtype=DTYPE)
+                noise = self.restart_scale * torch.randn(_pack(init).shape, generator=gen, dtype=DTYPE, device="cpu").to(self.device)
                 start_hyp = GPHyperparameters(*_unpack(_pack(init) + noise, num_outputs, dim))
             hyp, per_output, res = optimise_hyperparameters(x_h, y_h, start_hyp, floor, budget, self.curb)
             runs.append((hyp, per_output))
@@ -598,7 +609,7 @@ class GPModel:
             messages.append(f"hyperparameters run {r}: {res.message}")
         restart_nlls = torch.stack([p for _, p in runs])  # (R+1, E)
         best = restart_nlls.argmin(0)  # (E,)
-        rows = torch.arange(num_outputs)
+        rows = torch.arange(num_outputs, device=self.device)
         best_hyp = GPHyperparameters(
             log_ell=torch.stack([h.log_ell for h, _ in runs])[best, rows],
             log_alpha=torch.stack([h.log_alpha for h, _ in runs])[best, rows],
@@ -612,9 +623,9 @@ class GPModel:
             previous = None if warm_start is None else warm_start.pseudo_inputs
             warm = previous is not None and tuple(previous.shape) == (m, dim)
             if warm and not self.refresh_pseudo:
-                z0 = torch.as_tensor(previous, dtype=DTYPE).detach().clone()
+                z0 = torch.as_tensor(previous, dtype=DTYPE, device=self.device).detach().clone()
             else:
-                z0 = x[torch.randperm(n, generator=gen)[:m]].clone()
+                z0 = x[torch.randperm(n, generator=gen, device="cpu")[:m].to(self.device)].clone()
             fitc_budget = self.max_evals_fitc * (1 if warm else self.fitc_first_factor)
             z, fitc_per_output, res = optimise_pseudo_inputs(x, y, best_hyp, z0, fitc_budget, self.fitc_ridge)
             best_hyp.pseudo_inputs = z
@@ -628,8 +639,8 @@ class GPModel:
         return FitReport(
             hyperparameters=best_hyp.clone(),
             nll=float(best_nll.sum()),
-            nll_per_output=best_nll.numpy().copy(),
-            restart_nlls=restart_nlls.numpy().copy(),
+            nll_per_output=best_nll.cpu().numpy().copy(),
+            restart_nlls=restart_nlls.cpu().numpy().copy(),
             fitc_nll=fitc_nll,
             evaluations=evaluations,
             iterations=iterations,
@@ -678,7 +689,7 @@ class GPModel:
         adds ``sigma_a^2``.
         """
         self._require_fitted()
-        xs = torch.as_tensor(test_inputs, dtype=DTYPE)
+        xs = torch.as_tensor(test_inputs, dtype=DTYPE, device=self.device)
         with torch.no_grad():
             mean, var = predict_latent(self._posterior, xs)
             if include_noise:
@@ -691,26 +702,26 @@ class GPModel:
         """Training data, hyperparameters and pseudo-inputs (tensors and a bool only)."""
         self._require_fitted()
         h = self._hyp
-        z = h.pseudo_inputs if h.pseudo_inputs is not None else torch.zeros(0, self._inputs.shape[1], dtype=DTYPE)
-        return {
-            "inputs": self._inputs.clone(),
-            "targets": self._targets.clone(),
-            "log_ell": h.log_ell.clone(),
-            "log_alpha": h.log_alpha.clone(),
-            "log_sigma": h.log_sigma.clone(),
-            "pseudo_inputs": z.clone(),
+        z = h.pseudo_inputs if h.pseudo_inputs is not None else self._inputs.new_zeros(0, self._inputs.shape[1])
+        return {  # on the host, whatever the model's device
+            "inputs": self._inputs.cpu().clone(),
+            "targets": self._targets.cpu().clone(),
+            "log_ell": h.log_ell.cpu().clone(),
+            "log_alpha": h.log_alpha.cpu().clone(),
+            "log_sigma": h.log_sigma.cpu().clone(),
+            "pseudo_inputs": z.cpu().clone(),
             "sparse": h.pseudo_inputs is not None,
         }
 
     def load_state_dict(self, state: dict) -> None:
         """Restore a model saved with :meth:`state_dict` (the posterior is recomputed)."""
-        x, y = _as_data(state["inputs"], state["targets"])
-        z = torch.as_tensor(state["pseudo_inputs"], dtype=DTYPE) if bool(state["sparse"]) else None
+        x, y = _as_data(state["inputs"], state["targets"], self.device)
+        z = torch.as_tensor(state["pseudo_inputs"], dtype=DTYPE, device=self.device) if bool(state["sparse"]) else None
         self._inputs, self._targets = x, y
         self._hyp = GPHyperparameters(
-            torch.as_tensor(state["log_ell"], dtype=DTYPE).clone(),
-            torch.as_tensor(state["log_alpha"], dtype=DTYPE).clone(),
-            torch.as_tensor(state["log_sigma"], dtype=DTYPE).clone(),
+            torch.as_tensor(state["log_ell"], dtype=DTYPE, device=self.device).clone(),
+            torch.as_tensor(state["log_alpha"], dtype=DTYPE, device=self.device).clone(),
+            torch.as_tensor(state["log_sigma"], dtype=DTYPE, device=self.device).clone(),
             None if z is None else z.clone(),
         )
         self._posterior = self._compute_posterior()

@@ -94,6 +94,16 @@ PRESETS: dict[str, Preset] = {
 GENERIC = Preset()
 
 
+def resolve_device(device: str) -> torch.device:
+    """``cpu``, ``cuda`` or ``auto`` (``cuda`` where torch sees a GPU) as a torch device; ``cuda``
+    without a GPU raises :class:`OptionError` naming the fix."""
+    if device == "auto":
+        device = "cuda" if torch.cuda.is_available() else "cpu"
+    if device == "cuda" and not torch.cuda.is_available():
+        raise OptionError("device=cuda: torch sees no CUDA GPU here (install a CUDA build of torch, or --set device=cpu)")
+    return torch.device(device)
+
+
 def preset_with(task: str, options: dict[str, Any]) -> Preset:
     """The task's preset (:data:`PRESETS`, else :data:`GENERIC`) with the options that override its
     entries and are set (not ``None``): ``controller``, ``num_centres``, ``initial_rollouts``,
@@ -242,6 +252,8 @@ class Pilco(Learner):
                "cell in a sweep; harness.threads)", low=1, execution=True),
         Option("kernel", str, "auto", "moment matching's Q contraction: numba (compiled backward pass, extra 'fast'), "
                "torch (the reference) or auto (numba where installed)", choices=("auto", "numba", "torch"), execution=True),
+        Option("device", str, "cpu", "where the GP is trained and J computed: cpu, cuda (a GPU; kernel torch) or auto "
+               "(cuda where torch sees one)", choices=("cpu", "cuda", "auto"), execution=True),
         Option("plots", bool, True, "save the predicted-vs-realised cost plot per trial"),
         Option("sample_particles", int, 500, "particles for J_sampled, the policy's cost by Monte Carlo through the same GP "
                "(checks the moment-matching J; 0 = off)", low=0),
@@ -262,8 +274,9 @@ class Pilco(Learner):
                 self.layout.policy_noise_cov(self.policy_noise_std)
             except ValueError as exc:
                 raise OptionError(f"plan_with_noise on {spec.name}: {exc} (drop --set plan_with_noise=true)") from None
+        self.device = resolve_device(o["device"])
         try:
-            self.kernel = resolve_kernel(o["kernel"])
+            self.kernel = resolve_kernel(o["kernel"], self.device)
         except ValueError as exc:
             raise OptionError(f"kernel={o['kernel']}: {exc} (or --set kernel=torch)") from None
         self._state: dict[str, Any] = {}  # see state_dict(); filled at every hand-over
@@ -309,7 +322,7 @@ class Pilco(Learner):
         kernel = self.kernel
         torch.set_num_threads(threads)
         workdir = Path(tempfile.mkdtemp(prefix="pilco-"))
-        model = GPModel(sparse_threshold=self.preset.sparse_threshold, num_pseudo=self.num_pseudo, max_evals_full=o["gp_max_evals"],
+        model = GPModel(device=self.device, sparse_threshold=self.preset.sparse_threshold, num_pseudo=self.num_pseudo, max_evals_full=o["gp_max_evals"],
                         max_evals_fitc=o["gp_fitc_evals"], hyper_subset=o["gp_hyper_subset"],
                         refresh_pseudo=o["gp_refresh_pseudo"])
         controller = self._new_controller(torch.Generator().manual_seed(self.seed))
@@ -328,7 +341,7 @@ class Pilco(Learner):
                 sampled = resumed.get("sampled")
             while True:
                 if trial > 0:  # apply the policy handed over last for one trial, record the data
-                    episode = interaction.rollout(PilcoPolicy(controller, self.layout))
+                    episode = interaction.rollout(PilcoPolicy(copy.deepcopy(controller).cpu(), self.layout))
                     if o["plots"] and predicted is not None:
                         self.artifacts.append(self._plot_prediction(predicted, sampled, episode, workdir / f"prediction_trial{trial:03d}.png", trial))
                 trial += 1
@@ -339,7 +352,7 @@ class Pilco(Learner):
                 objective = PolicyObjective(
                     controller, model.posterior(), self.layout, spec.cost, spec.init_mean, spec.init_cov,
                     self.horizon, mean_only=self.mean_only, width=self.cost_width, policy_noise_std=self.policy_noise_std,
-                    kernel=kernel, threads=threads,
+                    kernel=kernel, threads=threads, device=self.device,
                 )
                 previous = objective.get_flat()
                 try:
@@ -364,14 +377,14 @@ class Pilco(Learner):
                     self.artifacts.append(self._save_settings(workdir))
                 self.horizon = next_planning_horizon(self.horizon, spec.horizon, search, o["grow_horizon_below"])
                 self._state = {
-                    "controller": copy.deepcopy(controller.state_dict()),
-                    "hyperparameters": hyperparameters,
+                    "controller": {k: v.detach().cpu().clone() for k, v in controller.state_dict().items()},
+                    "hyperparameters": hyperparameters.to("cpu"),
                     "trial": trial,
                     "predicted": predicted,
                     "sampled": sampled,
                     "planning_horizon": self.horizon,
                 }
-                yield PilcoPolicy(copy.deepcopy(controller), self.layout)
+                yield PilcoPolicy(copy.deepcopy(controller).cpu(), self.layout)
         finally:
             shutil.rmtree(workdir, ignore_errors=True)
 

@@ -81,11 +81,15 @@ def numba_available() -> bool:
 KERNEL_ENV = "HARNESS_PILCO_KERNEL"
 
 
-def resolve_kernel(kernel: str | None) -> str:
-    """``None``/``"auto"``: ``$HARNESS_PILCO_KERNEL`` if set, else ``numba`` where available, else
-    ``torch``; a named kernel is checked and returned. Raises ``ValueError`` with the fix."""
+def resolve_kernel(kernel: str | None, device: torch.device | str | None = None) -> str:
+    """``None``/``"auto"``: ``$HARNESS_PILCO_KERNEL`` if set, else ``numba`` where available (on the
+    CPU; ``torch`` on a GPU ``device``), else ``torch``; a named kernel is checked and returned.
+    Raises ``ValueError`` with the fix."""
+    on_cpu = device is None or torch.device(device).type == "cpu"
     if kernel in (None, "auto"):
-        kernel = os.environ.get(KERNEL_ENV) or ("numba" if numba_available() else "torch")
+        kernel = os.environ.get(KERNEL_ENV) or ("numba" if numba_available() and on_cpu else "torch")
+    if kernel == "numba" and not on_cpu:
+        raise ValueError(f"kernel 'numba' runs on the CPU, the model is on {device} (use kernel torch or auto)")
     if kernel not in KERNELS:
         raise ValueError(f"unknown kernel {kernel!r}; expected auto or one of {KERNELS}")
     if kernel == "numba" and not numba_available():
@@ -104,7 +108,7 @@ def _pair_indices(num_outputs: int) -> tuple[torch.Tensor, torch.Tensor, torch.T
     pairs = [(a, a) for a in range(e)] + [(a, b) for a in range(e) for b in range(a + 1, e)]
     lookup = {p: k for k, p in enumerate(pairs)}
     full = [lookup[(min(a, b), max(a, b))] for a in range(e) for b in range(e)]
-    as_long = lambda values: torch.tensor(values, dtype=torch.long)  # noqa: E731
+    as_long = lambda values: torch.tensor(values, dtype=torch.long, device="cpu")  # noqa: E731
     return as_long([p[0] for p in pairs]), as_long([p[1] for p in pairs]), as_long(full)
 
 
@@ -127,7 +131,8 @@ class _Workspace:
     written again (a later rollout reuses the slots).
     """
 
-    def __init__(self, keep_bytes: int | None = None) -> None:
+    def __init__(self, keep_bytes: int | None = None, device: torch.device | str | None = None) -> None:
+        self.device = torch.device("cpu") if device is None else torch.device(device)
         self.buffers: dict[str, torch.Tensor] = {}
         self.keep_bytes = KEEP_Q_BYTES if keep_bytes is None else keep_bytes
         self.slots: list[torch.Tensor] = []
@@ -143,7 +148,7 @@ class _Workspace:
             self.slots, self.stamps = [], []
         while len(self.slots) <= slot:
             with torch.inference_mode(False):
-                self.slots.append(torch.empty(shape, dtype=dtype))
+                self.slots.append(torch.empty(shape, dtype=dtype, device=self.device))
             self.stamps.append(0)
         self.writes += 1
         self.stamps[slot] = self.writes
@@ -160,7 +165,7 @@ class _Workspace:
         buf = self.buffers.get(name)
         if buf is None or buf.shape != shape or buf.dtype != dtype:
             with torch.inference_mode(False):  # an ordinary tensor, usable in and out of inference mode
-                buf = self.buffers[name] = torch.empty(shape, dtype=dtype)
+                buf = self.buffers[name] = torch.empty(shape, dtype=dtype, device=self.device)
         return buf
 
 
@@ -176,9 +181,12 @@ def _pair_block_size(n: int, itemsize: int) -> int:
     return max(1, BLOCK_BYTES // max(1, n * n * itemsize))
 
 
-def _pair_blocks(p: int, n: int, itemsize: int) -> list[tuple[int, int]]:
+def _pair_blocks(p: int, n: int, itemsize: int, device: torch.device | None = None) -> list[tuple[int, int]]:
     """``[(start, stop), ...]`` covering the ``p`` pairs, each block's ``Q`` at most :data:`BLOCK_BYTES`
-    (at least one pair per block)."""
+    (at least one pair per block). On a GPU: one block (every pair in one batched product; a
+    per-block loop there costs a kernel launch per block and buys no cache)."""
+    if device is not None and torch.device(device).type != "cpu":
+        return [(0, p)]
     size = _pair_block_size(n, itemsize)
     return [(s, min(s + size, p)) for s in range(0, p, size)]
 
@@ -197,7 +205,7 @@ def _contract_forward(left, right, w_left, w_right, inv_k, workspace: _Workspace
     e = inv_k.shape[0]
     q_wr = left.new_empty(p, n)
     trace = inv_k.new_empty(e)
-    for s, t in _pair_blocks(p, n, left.element_size()):
+    for s, t in _pair_blocks(p, n, left.element_size(), left.device):
         Q = _exp_bilinear(left[s:t], right[s:t], workspace.buffer("Q", (t - s, n, n), left.dtype) if out is None else out[s:t])
         # as a row-vector product: batched matrix-vector products with MKL are faster this way
         torch.bmm(w_right[s:t, None, :], Q.mT, out=q_wr[s:t, None, :])
@@ -246,7 +254,7 @@ def _contract_backward(left, right, w_left, w_right, inv_k, q_wr, g_quad, g_trac
     h_right = left.new_empty(e, n, k)  # H @ right
     h_t_left = left.new_empty(e, k, n)  # (H^T @ left)^T
     grad_inv = left.new_empty(inv_k.shape) if e > 0 and needs[4] else None
-    for s, t in _pair_blocks(p, n, left.element_size()):
+    for s, t in _pair_blocks(p, n, left.element_size(), left.device):
         if Q is None:
             Qb = _exp_bilinear(left[s:t], right[s:t], workspace.buffer("Q", (t - s, n, n), left.dtype))
         else:
@@ -327,7 +335,8 @@ class MomentMatchingGP:
     """
 
     def __init__(self, posterior: GPPosterior, kernel: str | None = None, threads: int = 1) -> None:
-        self.kernel = resolve_kernel(kernel)
+        device = posterior.beta.device
+        self.kernel = resolve_kernel(kernel, device)
         self.threads = max(1, int(threads))
         if self.kernel == "numba":
             from plugins.pilco import fused
@@ -339,7 +348,7 @@ class MomentMatchingGP:
         self.posterior = posterior
         beta = posterior.beta
         self.num_outputs = e = beta.shape[0]
-        first, second, self.full = _pair_indices(e)
+        first, second, self.full = (t.to(device) for t in _pair_indices(e))
         self.num_pairs = p = first.shape[0]
         X = posterior.inputs
         self.input_dim = d = X.shape[1]
@@ -354,18 +363,19 @@ class MomentMatchingGP:
         half_inv_dd = 0.5 / (dh[:, :, None] * dh[:, None, :])  # (P, d, d)
         scale = torch.cat([inv_ell, dh], dim=0)  # (E + P, d)
         self.scale_outer = scale[:, :, None] * scale[:, None, :]  # (E + P, d, d)
-        self.eye = torch.eye(d, dtype=dtype)
+        self.eye = torch.eye(d, dtype=dtype, device=device)
         # W = (w_offset - B^-1[w_index]) * w_coef:  [B_a^-1 (E); T (P); T (P)]
-        self.w_index = torch.cat([torch.arange(e), torch.arange(e, e + p), torch.arange(e, e + p)])
-        self.w_coef = torch.cat([-torch.ones(e, d, d, dtype=dtype), half_inv_dd, half_inv_dd])
-        self.w_offset = torch.cat([torch.zeros(e, d, d, dtype=dtype), self.eye.expand(2 * p, d, d)])
+        self.w_index = torch.cat([torch.arange(e, device=device), torch.arange(e, e + p, device=device),
+                                  torch.arange(e, e + p, device=device)])
+        self.w_coef = torch.cat([-torch.ones(e, d, d, dtype=dtype, device=device), half_inv_dd, half_inv_dd])
+        self.w_offset = torch.cat([torch.zeros(e, d, d, dtype=dtype, device=device), self.eye.expand(2 * p, d, d)])
         self.first, self.second = first, second
         self.pair_outputs = torch.cat([first, second])  # (2P,) output of each pair group of Z
         self.beta = beta
         self.beta_a, self.beta_b = beta[first], beta[second]
         self.inv_k = posterior.inv_k.contiguous()
-        self.ones = torch.ones(p, X.shape[0], 1, dtype=dtype)
-        self.workspace = _Workspace()
+        self.ones = torch.ones(p, X.shape[0], 1, dtype=dtype, device=device)
+        self.workspace = _Workspace(device=device)
         self.constants = tuple(getattr(self, name) for name in _CONSTANTS)
         self.has_grad = any(t.requires_grad for t in self.constants)
 
@@ -454,7 +464,7 @@ class MomentMatchingGP:
         e, p, d = self.num_outputs, self.num_pairs, self.input_dim
         need_c = dict(zip(_CONSTANTS, needs[2:]))
         # V = quad[full] - M M^T + diag(alpha2 - trace)
-        g_quad = torch.zeros(p, dtype=gV.dtype).index_add_(0, self.full, gV.reshape(-1))
+        g_quad = gV.new_zeros(p).index_add_(0, self.full, gV.reshape(-1))
         g_trace = None if mean_only else -gV.diagonal()
         gM = gM - (gV + gV.T) @ M
         grad_left, grad_right, g_beta_a, g_beta_b, g_inv_k = self._contract_backward(
@@ -464,7 +474,7 @@ class MomentMatchingGP:
         )
         # left = [2 Z_a T, u, 1], right = [Z_b, 1, v];  [u; v] = log_k[pair_outputs] + zwz[E:] - [hl_p; 0]
         g_uv = torch.cat([grad_left[..., d], grad_right[..., d + 1]], dim=0)  # (2P, n)
-        g_logk = torch.zeros(e, g_uv.shape[1], dtype=g_uv.dtype).index_add_(0, self.pair_outputs, g_uv)
+        g_logk = g_uv.new_zeros(e, g_uv.shape[1]).index_add_(0, self.pair_outputs, g_uv)
         # mean part: C = (lbt * iL)^T, lbt_a = lb_a @ t_a,  M = sum lb,  lb = q beta
         w = gC.T * self.scale_z[:e, 0]  # (E, d)  dL/dlbt
         g_lb = torch.baddbmm(gM[:, None, None], ZW[:e], w[:, :, None]).squeeze(-1)  # (E, n)
@@ -533,9 +543,9 @@ class _MomentsFunction(torch.autograd.Function):
     def backward(ctx, gM, gV, gC):
         gp = ctx.gp
         e, dtype = gp.num_outputs, gp.beta.dtype
-        gM = torch.zeros(e, dtype=dtype) if gM is None else gM
-        gV = torch.zeros(e, e, dtype=dtype) if gV is None else gV
-        gC = torch.zeros(gp.input_dim, e, dtype=dtype) if gC is None else gC
+        gM = gp.beta.new_zeros(e) if gM is None else gM
+        gV = gp.beta.new_zeros(e, e) if gV is None else gV
+        gC = gp.beta.new_zeros(gp.input_dim, e) if gC is None else gC
         needs = ctx.needs_input_grad
         grads = gp._backward(ctx.saved, gM, gV, gC, ctx.mean_only, needs[:2] + needs[4:])
         return grads[0], grads[1], None, None, *grads[2:]

@@ -40,6 +40,9 @@ class PolicyObjective:
             see :meth:`~plugins.pilco.propagate.StateLayout.policy_noise_cov`.
         kernel: the dynamics GP's contraction (:func:`~plugins.pilco.moments.resolve_kernel`:
             ``None``/``"auto"``, ``"numba"``, ``"torch"``); ``threads``: threads it may use.
+        device: where J is computed (``None``: where the posterior is, normally the CPU; e.g.
+            ``"cuda"``). The posterior, the distributions and the controller are moved there (the
+            controller in place); theta goes in and dJ comes out as NumPy arrays on the host.
     """
 
     def __init__(
@@ -56,18 +59,20 @@ class PolicyObjective:
         policy_noise_std=None,
         kernel: str | None = None,
         threads: int = 1,
+        device: torch.device | str | None = None,
     ) -> None:
-        self.controller = controller
-        self.posterior = posterior.detach()
+        self.device = posterior.beta.device if device is None else torch.device(device)
+        self.controller = controller.to(self.device)
+        self.posterior = posterior.detach().to(self.device)
         # kept: precomputed constants, work buffers
         self.dynamics = MomentMatchingGP(self.posterior, kernel=kernel, threads=threads)
         self.layout = layout
-        self.cost = CostMoments(cost, width)
-        self.init_mean = torch.as_tensor(np.asarray(init_mean, dtype=np.float64))
-        self.init_cov = torch.as_tensor(np.asarray(init_cov, dtype=np.float64))
+        self.cost = CostMoments(cost, width, self.device)
+        self.init_mean = torch.as_tensor(np.asarray(init_mean, dtype=np.float64), device=self.device)
+        self.init_cov = torch.as_tensor(np.asarray(init_cov, dtype=np.float64), device=self.device)
         self.horizon = int(horizon)
         self.mean_only = bool(mean_only)
-        self.policy_noise = None if policy_noise_std is None else layout.policy_noise_cov(policy_noise_std)
+        self.policy_noise = None if policy_noise_std is None else layout.policy_noise_cov(policy_noise_std).to(self.device)
         self.params = [p for p in controller.parameters() if p.requires_grad]
         self.num_params = sum(p.numel() for p in self.params)
 
@@ -90,12 +95,12 @@ class PolicyObjective:
         """Predicted per-step cost mean and standard deviation for t = 1..H (numpy ``(H,)`` each)."""
         with torch.no_grad():
             mean, var = self.step_costs()
-        return mean.numpy().copy(), var.sqrt().numpy().copy()
+        return mean.cpu().numpy().copy(), var.sqrt().cpu().numpy().copy()
 
     # ---- flat-vector interface for scipy ---------------------------------------------------------
     def get_flat(self) -> np.ndarray:
         """theta as a flat float64 vector (``controller.parameters()`` order)."""
-        return torch.cat([p.detach().reshape(-1) for p in self.params]).numpy().copy()
+        return torch.cat([p.detach().reshape(-1) for p in self.params]).cpu().numpy().copy()
 
     def set_flat(self, theta: np.ndarray) -> None:
         """Write a flat vector back into the controller parameters."""
@@ -106,7 +111,7 @@ class PolicyObjective:
         with torch.no_grad():
             for p in self.params:
                 n = p.numel()
-                p.copy_(torch.from_numpy(theta[offset : offset + n]).reshape(p.shape))
+                p.copy_(torch.from_numpy(theta[offset : offset + n]).reshape(p.shape))  # to the parameter's device
                 offset += n
 
     def value_and_grad(self, theta: np.ndarray) -> tuple[float, np.ndarray]:
@@ -114,6 +119,6 @@ class PolicyObjective:
         self.set_flat(theta)
         J = self.value()
         grads = torch.autograd.grad(J, self.params)
-        return float(J.detach()), torch.cat([g.reshape(-1) for g in grads]).numpy().copy()
+        return float(J.detach()), torch.cat([g.reshape(-1) for g in grads]).cpu().numpy().copy()
 
     __call__ = value_and_grad

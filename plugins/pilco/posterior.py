@@ -49,3 +49,9 @@ class GPPosterior:
     def detach(self) -> "GPPosterior":
         """A copy with every tensor detached (model fixed while the policy is optimised)."""
         return GPPosterior(*(t.detach() for t in (self.inputs, self.beta, self.inv_k, self.log_ell, self.log_alpha, self.log_sigma)))
+
+    def to(self, device: torch.device | str) -> "GPPosterior":
+        """The posterior on ``device`` (itself if it is there already)."""
+        if self.beta.device == torch.device(device):
+            return self
+        return GPPosterior(*(t.to(device) for t in (self.inputs, self.beta, self.inv_k, self.log_ell, self.log_alpha, self.log_sigma)))

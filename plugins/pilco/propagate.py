@@ -85,17 +85,25 @@ class StateLayout:
     @cached_property
     def angle_map(self) -> torch.Tensor:
         """``(K, D)`` selector of the angle entries."""
-        A = torch.zeros(self.num_angles, self.state_dim, dtype=torch.float64)
-        A[torch.arange(self.num_angles), torch.tensor(self.angle_indices, dtype=torch.long)] = 1.0
+        A = torch.zeros(self.num_angles, self.state_dim, dtype=torch.float64, device="cpu")
+        A[torch.arange(self.num_angles, device="cpu"), torch.tensor(self.angle_indices, dtype=torch.long, device="cpu")] = 1.0
         return A
 
     @cached_property
     def policy_index(self) -> torch.Tensor:
-        return torch.tensor(self.policy_inputs, dtype=torch.long)
+        return torch.tensor(self.policy_inputs, dtype=torch.long, device="cpu")
 
     @cached_property
     def model_index(self) -> torch.Tensor:
-        return torch.tensor(self.model_inputs, dtype=torch.long)
+        return torch.tensor(self.model_inputs, dtype=torch.long, device="cpu")
+
+    def on(self, name: str, device: torch.device) -> torch.Tensor:
+        """``angle_map``, ``policy_index`` or ``model_index`` on ``device`` (copied once per device)."""
+        cache = self.__dict__.setdefault("_on_device", {})
+        key = (name, torch.device(device))
+        if key not in cache:
+            cache[key] = getattr(self, name).to(device)
+        return cache[key]
 
     def policy_noise_cov(self, noise_std) -> torch.Tensor:
         """``(p, p)`` covariance of measurement noise with std ``noise_std (D,)`` on the policy's inputs.
@@ -115,7 +123,7 @@ class StateLayout:
 
     def augment(self, x: torch.Tensor) -> torch.Tensor:
         """Deterministic ``a(x)`` for ``x (..., D)``."""
-        phi = x @ self.angle_map.T
+        phi = x @ self.on("angle_map", x.device).T
         return torch.cat([x, torch.sin(phi), torch.cos(phi)], dim=-1)
 
 
@@ -158,8 +166,8 @@ def propagate_step_autograd(
     """:func:`propagate_step` composed of differentiable pieces, differentiated by autograd
     (the reference for :class:`FusedStep`, and the path for dynamics models with gradients)."""
     d = layout.state_dim
-    ma, sa = augment_trig(m, S, layout.angle_map)  # (A,), (A, A)
-    pol, mod = layout.policy_index, layout.model_index
+    ma, sa = augment_trig(m, S, layout.on("angle_map", m.device))  # (A,), (A, A)
+    pol, mod = layout.on("policy_index", m.device), layout.on("model_index", m.device)
 
     sp = sa[pol[:, None], pol[None, :]]
     mu, su, cu = policy_moments(ma[pol], sp if policy_noise is None else sp + policy_noise)
@@ -205,10 +213,11 @@ class FusedStep:
         self.dynamics, self.policy, self.layout, self.mean_only = dynamics, policy, layout, mean_only
         self.policy_noise = policy_noise  # (p, p) or None; a constant: the backward pass is unchanged
         a, f = layout.augmented_dim, dynamics.input_dim - layout.model_input_dim
-        self.p_pol = _selection(layout.policy_inputs, a)  # (p, A)
-        self.p_in = _selection(layout.model_inputs + tuple(range(a, a + f)), a + f)  # (q + F, A + F)
+        device = dynamics.beta.device
+        self.p_pol = _selection(layout.policy_inputs, a, device)  # (p, A)
+        self.p_in = _selection(layout.model_inputs + tuple(range(a, a + f)), a + f, device)  # (q + F, A + F)
         self.p_pol_t, self.p_in_t = self.p_pol.T.contiguous(), self.p_in.T.contiguous()
-        self.trig_maps = _doubled(layout.angle_map) if layout.num_angles else None
+        self.trig_maps = _doubled(layout.on("angle_map", device)) if layout.num_angles else None
         self.dyn_needs = (True, True) + (False,) * len(dynamics.constants)
 
     def __call__(self, m: torch.Tensor, S: torch.Tensor) -> tuple[torch.Tensor, torch.Tensor]:
@@ -304,11 +313,11 @@ class FusedStep:
         return (g_m, g_S, *g_policy)
 
 
-def _selection(indices: tuple[int, ...], size: int) -> torch.Tensor:
+def _selection(indices: tuple[int, ...], size: int, device: torch.device | None = None) -> torch.Tensor:
     """``(len(indices), size)`` 0/1 matrix ``P`` with ``P @ v = v[indices]``."""
-    P = torch.zeros(len(indices), size, dtype=torch.float64)
-    P[torch.arange(len(indices)), torch.tensor(indices, dtype=torch.long)] = 1.0
-    return P
+    P = torch.zeros(len(indices), size, dtype=torch.float64, device="cpu")
+    P[torch.arange(len(indices), device="cpu"), torch.tensor(indices, dtype=torch.long, device="cpu")] = 1.0
+    return P.to(device) if device is not None else P
 
 
 class _RolloutFunction(torch.autograd.Function):

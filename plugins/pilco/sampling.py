@@ -42,20 +42,21 @@ def sample_states(objective: PolicyObjective, particles: int, seed: int = 0) -> 
     eigval, eigvec = torch.linalg.eigh(objective.init_cov)  # a square root that also takes a singular Sigma0
     root = eigvec * eigval.clamp_min(0.0).sqrt()
     d = objective.init_mean.shape[0]
-    x = objective.init_mean + torch.randn(particles, d, generator=gen, dtype=torch.float64) @ root.T
+    device = objective.init_mean.device
+    x = objective.init_mean + torch.randn(particles, d, generator=gen, dtype=torch.float64).to(device) @ root.T
     states = [x]
     noise_std = None if objective.policy_noise is None else objective.policy_noise.diagonal().sqrt()
     with torch.no_grad():
         for _ in range(objective.horizon):
             a = layout.augment(x)
-            seen = a[:, layout.policy_index]
+            seen = a[:, layout.on("policy_index", device)]
             if noise_std is not None:
-                seen = seen + noise_std * torch.randn(seen.shape, generator=gen, dtype=torch.float64)
+                seen = seen + noise_std * torch.randn(seen.shape, generator=gen, dtype=torch.float64).to(device)
             u = objective.controller(seen)
-            mean, var = predict_latent(posterior, torch.cat([a[:, layout.model_index], u], dim=1))
+            mean, var = predict_latent(posterior, torch.cat([a[:, layout.on("model_index", device)], u], dim=1))
             x = x + mean
             if not objective.mean_only:
-                x = x + var.clamp_min(0.0).sqrt() * torch.randn(x.shape, generator=gen, dtype=torch.float64)
+                x = x + var.clamp_min(0.0).sqrt() * torch.randn(x.shape, generator=gen, dtype=torch.float64).to(device)
             states.append(x)
     return torch.stack(states)
 
@@ -64,4 +65,4 @@ def sampled_costs(objective: PolicyObjective, particles: int, seed: int = 0) -> 
     """Per-step expected cost ``(H,)`` for ``x_1 .. x_H`` by :func:`sample_states` (the task's cost
     with the objective's width); the Monte Carlo error of each step is at most ``0.5 / sqrt(particles)``."""
     with torch.no_grad():
-        return objective.cost.sample(sample_states(objective, particles, seed)[1:]).mean(dim=1).numpy().copy()
+        return objective.cost.sample(sample_states(objective, particles, seed)[1:]).mean(dim=1).cpu().numpy().copy()

@@ -72,7 +72,7 @@ def fitc_factors(
     """
     num_outputs = log_alpha.shape[0]
     m = pseudo_inputs.shape[0]
-    eye = torch.eye(m, dtype=inputs.dtype)
+    eye = torch.eye(m, dtype=inputs.dtype, device=inputs.device)
     signal_var = torch.exp(2.0 * log_alpha)  # (E,)
     kmm = se_ard(pseudo_inputs, pseudo_inputs, log_ell, log_alpha) + (ridge * signal_var)[:, None, None] * eye
     kmn = se_ard(pseudo_inputs, inputs, log_ell, log_alpha)  # (E, M, n)
@@ -127,7 +127,7 @@ def fitc_posterior(
     """
     f = fitc_factors(inputs, targets, pseudo_inputs, log_ell, log_alpha, log_sigma, ridge)
     m = pseudo_inputs.shape[0]
-    eye = torch.eye(m, dtype=inputs.dtype).expand(f.chol_a.shape)
+    eye = torch.eye(m, dtype=inputs.dtype, device=inputs.device).expand(f.chol_a.shape)
     w = torch.linalg.solve_triangular(f.chol_a.transpose(-1, -2), f.c[..., None], upper=True)
     beta = torch.linalg.solve_triangular(f.chol_kmm.transpose(-1, -2), w, upper=True)[..., 0]  # (E, M)
     chol_kmm_inv = torch.linalg.solve_triangular(f.chol_kmm, eye, upper=False)  # L^-1

@@ -157,7 +157,7 @@ def sin_moments(
 def _doubled(A: torch.Tensor) -> tuple[torch.Tensor, torch.Tensor]:
     """``([A; A], [0; pi/2])`` for :func:`trig_moments` (cached per map tensor)."""
     k = A.shape[0]
-    offset = torch.cat([torch.zeros(k, dtype=A.dtype), torch.full((k,), 0.5 * math.pi, dtype=A.dtype)])
+    offset = torch.cat([A.new_zeros(k), A.new_full((k,), 0.5 * math.pi)])
     return torch.cat([A, A], dim=0), offset
 
 
