@@ -7,7 +7,7 @@ Usage::
 
 For trial ``K`` of a finished or running PILCO run (default: its last saved trial) it loads the
 trained GP (``trialK/model_trialK.pt``) and the policy handed over at that trial
-(``policies/policy_trialK.pkl``) from the tracking store and reports, per predicted step:
+(``policies/policy_trialK.policy``) from the tracking store and reports, per predicted step:
 
 * **closed form**: PILCO's moment-matching expected cost (what the policy search minimised);
 * **sampled**: the same model and policy by Monte Carlo (:func:`plugins.pilco.sampling.sampled_costs`):

@@ -14,7 +14,7 @@ of J(theta) (the LQR has a *lower* J under the learner's own GP and moment match
 model/objective itself prefer the learned policy (the LQR's J is higher)?
 
 For each trial K of the PILCO run (``--trials``) it loads the GP the learner trained at trial K
-(``trialK/model_trialK.pt``) and the policy it handed over at trial K (``policies/policy_trialK.pkl``),
+(``trialK/model_trialK.pt``) and the policy it handed over at trial K (``policies/policy_trialK.policy``),
 and the riding LQRs (``--speeds``, via :func:`plugins.pilco.learner.linear_policy_from_gain`, as
 ``benchmarks/unicycle_linear_ceiling.py``). Under that GP it evaluates the learner's objective
 (:class:`plugins.pilco.objective.PolicyObjective`: the task's ``N(mu0, Sigma0)``, the run's cost

@@ -1,35 +1,38 @@
 """Per-trial checkpoints: everything needed to continue a run exactly where it stopped.
 
-A checkpoint is written after every hand-over (once the evaluation is logged), atomically
-(temporary file + ``os.replace``), and attached to the run as ``checkpoints/ckpt_trialNNN.pkl``.
-It holds the run configuration, the trial history, the interaction (episodes, counters,
-environment RNG state), the learner's state and the global RNG states, with a SHA-256 of the
-payload so that a file cut short by a crash is detected and skipped in favour of the previous one.
+A checkpoint is written after every hand-over (once the evaluation is logged), atomically, and
+attached to the run as ``checkpoints/ckpt_trialNNN.ckpt``. It holds the run configuration, the
+trial history, the interaction (episodes, counters, environment RNG state), the learner's state
+and the global RNG states (Python's ``random``, NumPy's, torch's), as plain data in the data-only
+format of :mod:`harness.datafile`: reading a checkpoint runs no code from it, and its SHA-256
+detects a file cut short by a crash, which is then skipped in favour of the previous one.
+Checkpoints of older harness versions (pickles, ``.pkl``) are refused with the command that
+converts them (:mod:`harness.migration`).
 """
 
 from __future__ import annotations
 
-import hashlib
-import os
-import pickle
 import random
 import sys
-import tempfile
 from dataclasses import dataclass, field
 from pathlib import Path
 from typing import Any
 
 import numpy as np
 
-from harness.errors import CheckpointError
+from harness import datafile
+from harness.datafile import DataFileError
 
-FORMAT_VERSION = 1
-_MAGIC = b"HARNESS-CKPT\n"
+#: version of the checkpoint's content (1: the pickled checkpoints of older harness versions)
+FORMAT_VERSION = 2
+KIND = "checkpoint"
+PREFIX = "ckpt_trial"
+_FIELDS = {"identity": dict, "trial": int, "history": list, "interaction": dict, "learner": dict, "rng": dict, "version": int}
 
 
 @dataclass
 class Checkpoint:
-    """State of a run after ``trial`` hand-overs.
+    """State of a run after ``trial`` hand-overs (every field plain data, :mod:`harness.datafile`).
 
     Attributes:
         identity: the resolved run definition (learner, task, seed, options, limits); a resume
@@ -38,7 +41,7 @@ class Checkpoint:
         history: the per-trial records logged so far.
         interaction: :meth:`harness.interaction.Interaction.state_dict`.
         learner: the learner's ``state_dict()``.
-        rng: Python, NumPy-global and torch-global RNG states.
+        rng: Python, NumPy-global and torch-global RNG states (:func:`global_rng_state`).
     """
 
     identity: dict[str, Any]
@@ -50,7 +53,14 @@ class Checkpoint:
     version: int = FORMAT_VERSION
 
 
+def checkpoint_name(trial: int) -> str:
+    """The file name of trial ``trial``'s checkpoint, ``ckpt_trialNNN.ckpt``."""
+    return f"{PREFIX}{trial:03d}{datafile.CHECKPOINT_SUFFIX}"
+
+
 def global_rng_state() -> dict[str, Any]:
+    """Python's ``random`` state ``(3, (625 ints), None)``, NumPy's global state ``('MT19937', (624,) uint32,
+    pos, has_gauss, cached)`` and, where torch is loaded, torch's CPU generator state (a ``uint8`` tensor)."""
     state: dict[str, Any] = {"python": random.getstate(), "numpy": np.random.get_state()}
     torch = sys.modules.get("torch")
     if torch is not None:
@@ -68,43 +78,28 @@ def set_global_rng_state(state: dict[str, Any]) -> None:
 
 
 def save_checkpoint(checkpoint: Checkpoint, path: Path) -> Path:
-    """Write ``checkpoint`` to ``path`` atomically; returns ``path``."""
-    path = Path(path)
-    payload = pickle.dumps(checkpoint, protocol=pickle.HIGHEST_PROTOCOL)
-    digest = hashlib.sha256(payload).hexdigest().encode()
-    fd, tmp = tempfile.mkstemp(prefix=".ckpt-", dir=path.parent)
-    try:
-        with os.fdopen(fd, "wb") as fh:
-            fh.write(_MAGIC + digest + b"\n" + payload)
-            fh.flush()
-            os.fsync(fh.fileno())
-        os.replace(tmp, path)
-    except BaseException:
-        Path(tmp).unlink(missing_ok=True)
-        raise
-    return path
+    """Write ``checkpoint`` to ``path`` atomically; returns ``path``.
+
+    Raises :class:`~harness.datafile.NotPlainDataError` naming the entry that is not plain data.
+    """
+    tree = {name: getattr(checkpoint, name) for name in _FIELDS}
+    return datafile.write(Path(path), KIND, tree)
 
 
 def load_checkpoint(path: Path) -> Checkpoint:
-    """Read and verify a checkpoint; :class:`CheckpointError` if it is missing, cut or foreign."""
+    """Read and verify a checkpoint; a :class:`~harness.errors.CheckpointError` if it is missing, cut,
+    foreign or changed (:class:`~harness.datafile.LegacyFormatError`: an older harness's pickle)."""
     path = Path(path)
-    try:
-        blob = path.read_bytes()
-    except OSError as exc:
-        raise CheckpointError(f"cannot read checkpoint {path}: {exc.strerror}") from exc
-    if not blob.startswith(_MAGIC):
-        raise CheckpointError(f"{path.name} is not a harness checkpoint")
-    header_end = blob.index(b"\n", len(_MAGIC))
-    digest, payload = blob[len(_MAGIC):header_end], blob[header_end + 1:]
-    if hashlib.sha256(payload).hexdigest().encode() != digest:
-        raise CheckpointError(f"checkpoint {path.name} is corrupt (checksum mismatch: written partially?)")
-    try:
-        checkpoint = pickle.loads(payload)
-    except Exception as exc:
-        raise CheckpointError(f"checkpoint {path.name} cannot be read ({type(exc).__name__}: {exc})") from exc
-    if not isinstance(checkpoint, Checkpoint) or checkpoint.version != FORMAT_VERSION:
-        raise CheckpointError(f"checkpoint {path.name} has an unsupported format; resume needs format {FORMAT_VERSION}")
-    return checkpoint
+    _, tree = datafile.read(path, KIND)
+    if not isinstance(tree, dict) or set(tree) != set(_FIELDS):
+        keys = sorted(tree) if isinstance(tree, dict) else type(tree).__name__
+        raise DataFileError(f"checkpoint {path.name} holds {keys}, not a checkpoint's entries {sorted(_FIELDS)}: refused")
+    wrong = [name for name, kind in _FIELDS.items() if not isinstance(tree[name], kind) or isinstance(tree[name], bool)]
+    if wrong:
+        raise DataFileError(f"checkpoint {path.name} has malformed entries ({', '.join(wrong)}): refused")
+    if tree["version"] != FORMAT_VERSION:
+        raise DataFileError(f"checkpoint {path.name} has version {tree['version']}; resume needs version {FORMAT_VERSION}")
+    return Checkpoint(**tree)
 
 
 def identity_mismatch(saved: dict[str, Any], current: dict[str, Any], defaults: dict[str, Any] | None = None,

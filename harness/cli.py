@@ -4,6 +4,7 @@
     harness bench --learner L --task T [--seed S] [--max-trials N | --budget-seconds X] [--set k=v ...]
     harness sweep --learners L1,L2 --tasks T1,T2 --seeds 0-9 [--executor local|ray] [--workers N] [--set k=v ...]
     harness report [--sweep ID] [--out results/]
+    harness store migrate RUN_ID... | --all [--yes]
     harness --version
 
 Errors caused by input (unknown plugin or option, bad value, unwritable store, ...) print one
@@ -203,6 +204,45 @@ def eval_command(run_id: str, episodes: int, seed: int, trial: int | None, out_d
     if report.histogram is not None:
         click.echo(f"  histogram of final distances: {report.histogram}")
     click.echo(f"  summary: {report.summary_path} (also logged to the run under test/)")
+
+
+@main.group("store")
+def store_group() -> None:
+    """Maintain a tracking store's runs (convert the files of older harness versions)."""
+
+
+@store_group.command("migrate")
+@click.argument("run_ids", nargs=-1, metavar="[RUN_ID]...")
+@click.option("--all", "all_runs", is_flag=True, help="Every run of the store with a checkpoint or policy in the old format.")
+@click.option("--tracking-uri", default=None, help="MLflow store (default: $MLFLOW_TRACKING_URI or sqlite:///./mlflow.db).")
+@click.option("--yes", is_flag=True, help="Do not ask before reading the old files (they are pickles: reading runs code).")
+@_guarded
+def migrate_command(run_ids: tuple[str, ...], all_runs: bool, tracking_uri: str | None, yes: bool) -> None:
+    """Convert runs' checkpoints and policies from the old pickled format to the data-only one, once.
+
+    Older harness versions pickled checkpoints and policies; reading a pickle runs code stored in it,
+    so the harness now refuses them. This reads each old file of the given runs once, on your request,
+    and writes its data-only equivalent to the run (old files stay, unused). Only for stores you trust.
+    """
+    from harness.migration import WARNING, migrate_run, runs_with_legacy_files
+    from harness.tracking import get_run, open_client, resolve_tracking_uri
+
+    if bool(run_ids) == all_runs:
+        raise HarnessError("give the RUN_IDs to convert or --all (not both)")
+    uri = resolve_tracking_uri(tracking_uri)
+    client = open_client(uri)
+    for run_id in run_ids:
+        get_run(client, run_id, uri)  # an unknown id fails before anything is read
+    targets = list(run_ids) or runs_with_legacy_files(client)
+    if not targets:
+        click.echo(f"no run in {uri} has files in the old format")
+        return
+    click.echo(f"warning: {WARNING}", err=True)
+    if not yes:
+        click.confirm(f"convert the old files of {len(targets)} run(s) in {uri}?", abort=True, err=True)
+    for run_id in targets:
+        if not migrate_run(client, run_id, say=click.echo):
+            click.echo(f"run {run_id}: nothing to convert")
 
 
 @main.command("sweep")

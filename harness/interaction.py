@@ -13,6 +13,7 @@ from __future__ import annotations
 
 import math
 from collections.abc import Callable
+from dataclasses import fields
 from typing import Any
 
 import gymnasium as gym
@@ -212,15 +213,17 @@ class Interaction:
         self._current = None
 
     def state_dict(self) -> dict[str, Any]:
-        """Counters, recorded episodes and the environment's RNG state (between episodes only)."""
+        """Counters, recorded episodes (each a dict of its fields) and the environment's RNG state
+        (between episodes only), as plain data (:mod:`harness.datafile`)."""
         if self._current is not None:
             raise InteractionError("cannot checkpoint an interaction in the middle of an episode")
-        return {"steps": self._steps, "episodes": list(self._episodes), "seed": self._seed, "env_rng": env_rng_state(self._env)}
+        episodes = [{f.name: getattr(ep, f.name) for f in fields(Episode)} for ep in self._episodes]
+        return {"steps": self._steps, "episodes": episodes, "seed": self._seed, "env_rng": env_rng_state(self._env)}
 
     def load_state_dict(self, state: dict[str, Any]) -> None:
         """Continue from :meth:`state_dict` (same task variant; the budget stays this object's)."""
         self._steps = int(state["steps"])
-        self._episodes = list(state["episodes"])
+        self._episodes = [Episode(**ep) for ep in state["episodes"]]
         self._seed = state["seed"]
         self._current = None
         if self._seed is None:  # the first reset already happened: restore the RNG it left

@@ -24,7 +24,6 @@ Minimal example (uniform random controls)::
 
 from __future__ import annotations
 
-import pickle
 from abc import ABC, abstractmethod
 from collections.abc import Iterator
 from pathlib import Path
@@ -37,6 +36,10 @@ from harness.task import TaskSpec
 
 if TYPE_CHECKING:
     from harness.interaction import Interaction
+
+#: the kind of a policy file (:mod:`harness.datafile`) and its name in a run, ``policies/policy_trialKKK.policy``
+POLICY_KIND = "policy"
+POLICY_PREFIX = "policy_trial"
 
 
 class Policy(Protocol):
@@ -95,7 +98,8 @@ class Learner(ABC):
         """Act through ``interaction`` and yield a policy at every hand-over."""
 
     def state_dict(self) -> dict[str, Any]:
-        """The learner's state at its last hand-over (plain data; pickled into checkpoints).
+        """The learner's state at its last hand-over, as plain data (:mod:`harness.datafile`: dicts, lists,
+        tuples, numbers, strings, ``None``, NumPy arrays, torch tensors), stored in checkpoints.
 
         A learner with ``supports_resume = True`` must make ``load_state_dict(state_dict())``
         followed by ``learn(interaction)`` continue exactly after that hand-over.
@@ -106,20 +110,66 @@ class Learner(ABC):
         """Restore :meth:`state_dict` before :meth:`learn` is called (see ``supports_resume``)."""
         self._resume_state = state
 
-    def save_policy(self, policy: Policy, path: Path) -> Path:
-        """Write ``policy`` to ``path`` (default: pickle) and return the written path."""
-        path = Path(path).with_suffix(".pkl")
-        with open(path, "wb") as fh:
-            pickle.dump(policy, fh)
-        return path
+    # -- policies as data ------------------------------------------------------------------
+    # A run's policies are stored as plain data (harness.datafile): a learner says what its policy
+    # is made of (policy_state) and rebuilds it from that (policy_from_state); the harness writes,
+    # checks and reads the files (save_policy, load_policy), so reading a policy runs no code from it.
 
     @classmethod
-    def load_policy(cls, path: Path) -> Policy:
-        """Read a policy written by :meth:`save_policy` (override both for another format)."""
-        from harness.errors import CheckpointError
+    def policy_state(cls, policy: Policy) -> dict[str, Any]:
+        """``policy`` as plain data (dicts, lists, tuples, numbers, strings, ``None``, NumPy arrays, torch
+        tensors) from which :meth:`policy_from_state` rebuilds a policy that acts exactly the same.
 
+        Every learner whose runs ``harness eval`` should test overrides both (the conformance suite,
+        :mod:`harness.testing`, checks the round trip); this default raises ``NotImplementedError``
+        and the runner records that the run's policies were not saved.
+        """
+        raise NotImplementedError(f"learner '{cls.name}' does not save its policies (it defines no policy_state and policy_from_state)")
+
+    @classmethod
+    def policy_from_state(cls, state: dict[str, Any], spec: TaskSpec) -> Policy:
+        """The policy that :meth:`policy_state` described, for a task with ``spec``. Raise ``KeyError``,
+        ``TypeError``, ``ValueError`` or ``RuntimeError`` for a state that is not one (the harness refuses the file)."""
+        raise NotImplementedError(f"learner '{cls.name}' does not load policies (it defines no policy_state and policy_from_state)")
+
+    @classmethod
+    def save_policy(cls, policy: Policy, path: Path) -> Path:
+        """Write ``policy`` to ``<path>.policy`` (data only) and return the written path."""
+        from harness import datafile
+
+        path = Path(path).with_suffix(datafile.POLICY_SUFFIX)
+        return datafile.write(path, POLICY_KIND, cls.policy_state(policy), {"learner": cls.name})
+
+    @classmethod
+    def load_policy(cls, path: Path, spec: TaskSpec) -> Policy:
+        """The policy of a file written by :meth:`save_policy`, for a task with ``spec``.
+
+        Raises :class:`~harness.datafile.DataFileError` (a :class:`~harness.errors.CheckpointError`) for
+        a file that is cut, changed, foreign, another learner's or in an older pickled format.
+        """
+        from harness import datafile
+
+        path = Path(path)
+        meta, state = datafile.read(path, POLICY_KIND)
+        if meta.get("learner") != cls.name:
+            raise datafile.DataFileError(f"policy {path.name} was saved by learner {meta.get('learner')!r}, not '{cls.name}': "
+                                         "load it with that learner")
+        if not isinstance(state, dict):
+            raise datafile.DataFileError(f"policy {path.name} holds a {type(state).__name__}, not a policy's state: refused")
         try:
-            with open(path, "rb") as fh:
-                return pickle.load(fh)
-        except Exception as exc:
-            raise CheckpointError(f"cannot load the policy {Path(path).name} ({type(exc).__name__}: {exc}); the file is corrupt") from exc
+            return cls.policy_from_state(state, spec)
+        except (KeyError, TypeError, ValueError, AttributeError, RuntimeError) as exc:
+            raise datafile.DataFileError(f"policy {path.name} does not hold a '{cls.name}' policy for task {spec.name!r} "
+                                         f"({type(exc).__name__}: {exc}): refused") from None
+
+    @classmethod
+    def read_legacy_policy(cls, path: Path, spec: TaskSpec) -> Policy:
+        """A policy file of an older harness version (``.pkl``: a pickle), for ``harness store migrate`` only.
+
+        **Reading it runs code from the file**: call it only on the user's explicit request, for files
+        from a store they trust. Learners whose older files were not pickles override it.
+        """
+        import pickle
+
+        with open(path, "rb") as fh:
+            return pickle.load(fh)

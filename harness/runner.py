@@ -27,13 +27,15 @@ from typing import Any
 
 import numpy as np
 
-from harness.checkpoint import Checkpoint, global_rng_state, identity_mismatch, load_checkpoint, save_checkpoint, set_global_rng_state
+from harness.checkpoint import PREFIX as CHECKPOINT_PREFIX
+from harness.checkpoint import Checkpoint, checkpoint_name, global_rng_state, identity_mismatch, load_checkpoint, save_checkpoint, set_global_rng_state
+from harness.datafile import LegacyFormatError, is_legacy, legacy_message, trial_files
 from harness.discovery import load_learner, load_task
 from harness.errors import BudgetExhaustedError, CheckpointError, HarnessError, OptionError, TrackingError
 from harness.evaluation import Evaluator
 from harness.interaction import Interaction
 from harness.interrupts import STOP_AFTER_TRIAL, StopRequested, StopRequests, held_interrupts
-from harness.learner import Learner
+from harness.learner import POLICY_PREFIX, Learner
 from harness.progress import ProgressReporter, SilentProgress
 from harness.provenance import git_sha, package_versions
 from harness.seeding import derive_seeds, seed_everything
@@ -157,7 +159,7 @@ def save_episodes(episodes: tuple[Episode, ...] | list[Episode], path: Path) -> 
 def load_episodes(path: Path) -> list[Episode]:
     """The episodes of a :func:`save_episodes` file, in order (``clipped_actions``/``extra`` are not stored)."""
     try:
-        data = np.load(path)
+        data = np.load(path, allow_pickle=False)
     except OSError as exc:
         raise FileNotFoundError(f"cannot read episodes file {path}: {exc}") from exc
     with data:
@@ -200,7 +202,9 @@ def _latest_valid_checkpoint(tracker: Tracker, destination: Path) -> Checkpoint:
     """The checkpoint of the highest trial that loads (a file cut by a crash is skipped); only
     the files needed are downloaded, newest first."""
     errors = []
-    for name in sorted(tracker.list_artifacts("checkpoints"), reverse=True):
+    for name in reversed(trial_files(tracker.list_artifacts("checkpoints"), CHECKPOINT_PREFIX).values()):
+        if is_legacy(name):  # an older harness's pickle: converted on request, never skipped for an older checkpoint
+            raise LegacyFormatError(legacy_message(Path(name).name, "checkpoint", tracker.run_id))
         try:
             return load_checkpoint(tracker.fetch_artifact(name, destination))
         except CheckpointError as exc:
@@ -242,7 +246,11 @@ def run(
         if not prep.learner_cls.supports_resume:
             raise CheckpointError(f"learner '{config.learner}' cannot resume runs; start a new run without --resume")
         tracker.resume(resume_run_id)
-        checkpoint = _latest_valid_checkpoint(tracker, workdir / "resume")
+        try:
+            checkpoint = _latest_valid_checkpoint(tracker, workdir / "resume")
+        except LegacyFormatError:
+            tracker.finish("KILLED")  # not RUNNING: resumable once its checkpoints are converted
+            raise
         mismatch = identity_mismatch(checkpoint.identity, identity, option_defaults(prep), ignore=execution_keys(prep))
         if mismatch:
             tracker.finish("FAILED")
@@ -379,9 +387,9 @@ def _log_missing_trials(tracker: Tracker, history: Sequence[Mapping[str, float]]
 def _save_checkpoint(tracker: Tracker, workdir: Path, checkpoint: Checkpoint) -> None:
     folder = workdir / "checkpoints"
     folder.mkdir(exist_ok=True)
-    path = save_checkpoint(checkpoint, folder / f"ckpt_trial{checkpoint.trial:03d}.pkl")
+    path = save_checkpoint(checkpoint, folder / checkpoint_name(checkpoint.trial))
     tracker.log_artifact(path, "checkpoints")
-    previous = folder / f"ckpt_trial{checkpoint.trial - 1:03d}.pkl"
+    previous = folder / checkpoint_name(checkpoint.trial - 1)
     previous.unlink(missing_ok=True)  # the tracker keeps its copy; the local one is no longer needed
 
 
@@ -389,8 +397,8 @@ def _log_trial_artifacts(tracker: Tracker, learner: Learner, policy: Any, intera
     policy_dir = workdir / "policies"
     policy_dir.mkdir(exist_ok=True)
     try:
-        path = learner.save_policy(policy, policy_dir / f"policy_trial{trial:03d}")
-    except Exception as exc:  # an unpicklable policy must not kill the run; say so in the run
+        path = learner.save_policy(policy, policy_dir / f"{POLICY_PREFIX}{trial:03d}")
+    except Exception as exc:  # a policy that cannot be saved must not kill the run; say so in the run
         tracker.set_tags({f"policy_save_error_trial{trial}": f"{type(exc).__name__}: {exc}"})
     else:
         tracker.log_artifact(path, "policies")

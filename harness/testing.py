@@ -186,6 +186,84 @@ def check_learner(
     assert interaction.steps <= 3, "the budget must bound the learner's steps"
 
 
+def data_difference(a: Any, b: Any, where: str = "value") -> str | None:
+    """Where plain data ``b`` first differs from ``a`` (types, shapes, dtypes, values bit for bit), or ``None``.
+
+    Mappings compare as mappings (a ``dict`` equals an ``OrderedDict`` with the same items in the same order).
+    """
+    import struct
+    from collections.abc import Mapping
+
+    import torch
+
+    if isinstance(a, Mapping):
+        if not isinstance(b, Mapping) or list(a) != list(b):
+            return f"{where}: keys {list(a)} became {list(b) if isinstance(b, Mapping) else type(b).__name__}"
+        return next((d for k in a if (d := data_difference(a[k], b[k], f"{where}[{k!r}]"))), None)
+    if isinstance(a, torch.Tensor):
+        if not isinstance(b, torch.Tensor) or a.dtype != b.dtype or a.shape != b.shape:
+            return f"{where}: tensor {a.dtype} {tuple(a.shape)} became {b!r:.80}"
+        a, b = a.detach().cpu().numpy(), b.detach().cpu().numpy()
+    if isinstance(a, (np.ndarray, np.generic)):
+        if type(a) is not type(b) or a.dtype != b.dtype or np.shape(a) != np.shape(b) or a.tobytes() != b.tobytes():
+            return f"{where}: {type(a).__name__} {a.dtype} {np.shape(a)} became {b!r:.80}"
+        return None
+    if isinstance(a, (list, tuple)):
+        if type(a) is not type(b) or len(a) != len(b):
+            return f"{where}: {type(a).__name__} of {len(a)} became {type(b).__name__} {b!r:.80}"
+        return next((d for i, (x, y) in enumerate(zip(a, b)) if (d := data_difference(x, y, f"{where}[{i}]"))), None)
+    if isinstance(a, float) and type(b) is float:
+        return None if struct.pack("<d", a) == struct.pack("<d", b) else f"{where}: {a!r} became {b!r}"
+    if type(a) is not type(b) or a != b:
+        return f"{where}: {a!r:.80} became {b!r:.80}"
+    return None
+
+
+def check_policy_round_trip(learner_cls: type[Learner], task: Task, options: dict[str, Any] | None = None, seed: int = 0) -> None:
+    """The first handed-over policy, saved as data (``save_policy``) and loaded back (``load_policy``), acts
+    exactly as the live one did; a changed file is refused; a resumable learner's ``state_dict()`` is plain
+    data that a checkpoint gives back exactly (:mod:`harness.datafile`)."""
+    import tempfile
+    from pathlib import Path
+
+    from harness import datafile
+
+    spec = task.spec
+    probes = np.random.default_rng(2).multivariate_normal(spec.init_mean, spec.init_cov + np.eye(spec.state_dim), size=6)
+    learner = learner_cls(spec, options, seed=seed)
+    interaction = Interaction(task.make_env(), spec, seed=seed)
+    generator = learner.learn(interaction)
+    with tempfile.TemporaryDirectory(prefix="harness-conformance-") as tmp:
+        try:
+            policy = next(generator)
+            path = learner_cls.save_policy(policy, Path(tmp) / "policy_trial001")
+            live = np.array([np.asarray(policy(x), dtype=np.float64) for x in probes])
+            if learner_cls.supports_resume:
+                state = learner.state_dict()
+                try:
+                    _, back = datafile.loads(datafile.dumps("checkpoint", state), "checkpoint", "state")
+                except datafile.NotPlainDataError as exc:
+                    raise AssertionError(f"state_dict() must be plain data: {exc}") from None
+                difference = data_difference(state, back, "state_dict()")
+                assert difference is None, f"state_dict() does not come back from a checkpoint as it was: {difference}"
+        finally:
+            generator.close()
+            interaction.close()
+        assert path.suffix == datafile.POLICY_SUFFIX, f"save_policy must write {datafile.POLICY_SUFFIX}, wrote {path.name}"
+        loaded = learner_cls.load_policy(path, spec)
+        again = np.array([np.asarray(loaded(x), dtype=np.float64) for x in probes])
+        assert np.array_equal(live, again), "the loaded policy must act exactly as the saved one did"
+        blob = bytearray(path.read_bytes())
+        blob[-1] ^= 1
+        path.write_bytes(bytes(blob))
+        try:
+            learner_cls.load_policy(path, spec)
+        except datafile.DataFileError:
+            pass
+        else:
+            raise AssertionError("load_policy must refuse a changed file")
+
+
 class TaskConformance:
     """pytest base class: set ``task_cls`` (and optionally ``task_options``)."""
 
@@ -220,3 +298,8 @@ class LearnerConformance:
         from harness.discovery import load_task
 
         check_learner(self.learner_cls, load_task(self.task_name)(**self.task_options), self.learner_options)
+
+    def test_policy_round_trip(self) -> None:
+        from harness.discovery import load_task
+
+        check_policy_round_trip(self.learner_cls, load_task(self.task_name)(**self.task_options), self.learner_options)

@@ -16,9 +16,11 @@ from pathlib import Path
 
 import numpy as np
 
+from harness.datafile import LegacyFormatError, is_legacy, legacy_message, trial_files
 from harness.discovery import load_learner, load_task
 from harness.errors import CheckpointError
 from harness.evaluation import Evaluator
+from harness.learner import POLICY_PREFIX
 
 
 @dataclass
@@ -42,15 +44,15 @@ def task_options(params: dict[str, str]) -> dict[str, str]:
 
 
 def _latest_policy(client, run_id: str, trial: int | None) -> str:
-    files = sorted(a.path for a in client.list_artifacts(run_id, "policies"))
+    """The artifact name of the run's last (or ``trial``'s) policy; a trial's data-format file over an older one."""
+    files = trial_files((a.path for a in client.list_artifacts(run_id, "policies")), POLICY_PREFIX)
     if not files:
         raise CheckpointError(f"run {run_id} has no saved policy (no artifacts under 'policies/')")
     if trial is None:
-        return files[-1]
-    wanted = [f for f in files if f"trial{trial:03d}" in f]
-    if not wanted:
-        raise CheckpointError(f"run {run_id} has no policy of trial {trial}; it has {', '.join(Path(f).name for f in files)}")
-    return wanted[0]
+        return files[max(files)]
+    if trial not in files:
+        raise CheckpointError(f"run {run_id} has no policy of trial {trial}; it has {', '.join(Path(f).name for f in files.values())}")
+    return files[trial]
 
 
 def plot_distance_histogram(distances: np.ndarray, threshold: float | None, title: str, path: Path) -> Path:
@@ -92,8 +94,10 @@ def evaluate_saved_policy(
     artifact = _latest_policy(client, run_id, trial)
     out_dir = Path(out_dir) if out_dir is not None else Path(tempfile.mkdtemp(prefix="harness-eval-"))
     out_dir.mkdir(parents=True, exist_ok=True)
+    if is_legacy(artifact):
+        raise LegacyFormatError(legacy_message(Path(artifact).name, "policy", run_id))
     local = Path(client.download_artifacts(run_id, artifact, str(out_dir)))
-    policy = load_learner(params["learner"]).load_policy(local)
+    policy = load_learner(params["learner"]).load_policy(local, task.spec)
 
     evaluator = Evaluator(task, n_episodes=episodes, seed=seed)
     try:

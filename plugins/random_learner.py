@@ -3,18 +3,21 @@
 from __future__ import annotations
 
 from collections.abc import Iterator
+from typing import Any
 
 import numpy as np
 
 from harness.interaction import Interaction
 from harness.learner import Learner, Policy
 from harness.options import Option
+from harness.task import TaskSpec
 
 
 class UniformRandomPolicy:
     """u ~ U[scale * action_low, scale * action_high], independently at every step.
 
-    Picklable (its generator is part of its state), so it can be saved like any policy.
+    Its generator is part of its state (:meth:`RandomLearner.policy_state`): a saved policy draws
+    what the live one would have drawn next.
     """
 
     def __init__(self, low: np.ndarray, high: np.ndarray, seed: int) -> None:
@@ -50,3 +53,19 @@ class RandomLearner(Learner):
 
     def state_dict(self) -> dict:
         return {"rng": self._policy.rng.bit_generator.state}
+
+    @classmethod
+    def policy_state(cls, policy: Policy) -> dict[str, Any]:
+        """Bounds ``low``, ``high`` ``(F,)`` and the generator's state (a PCG64 state dict)."""
+        if not isinstance(policy, UniformRandomPolicy):
+            raise TypeError(f"a random learner's policy is a UniformRandomPolicy, not a {type(policy).__name__}")
+        return {"low": policy.low.copy(), "high": policy.high.copy(), "rng": policy.rng.bit_generator.state}
+
+    @classmethod
+    def policy_from_state(cls, state: dict[str, Any], spec: TaskSpec) -> UniformRandomPolicy:
+        low, high = np.asarray(state["low"], dtype=np.float64), np.asarray(state["high"], dtype=np.float64)
+        if low.shape != (spec.action_dim,) or high.shape != (spec.action_dim,):
+            raise ValueError(f"bounds of shape {low.shape} for {spec.action_dim} controls")
+        policy = UniformRandomPolicy(low, high, seed=0)
+        policy.rng.bit_generator.state = state["rng"]
+        return policy

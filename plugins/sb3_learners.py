@@ -94,14 +94,23 @@ def from_bounds(action: np.ndarray, low: np.ndarray, high: np.ndarray) -> np.nda
     return 2.0 * (u - low) / (high - low) - 1.0
 
 
+def feature_space(dim: int) -> gym.spaces.Box:
+    """What the networks see: an unbounded float32 ``Box`` of ``dim`` features."""
+    return gym.spaces.Box(-np.inf, np.inf, shape=(int(dim),), dtype=np.float32)
+
+
+def normalised_action_space(shape: tuple[int, ...]) -> gym.spaces.Box:
+    """What the networks emit: a float32 ``Box`` ``[-1, 1]^shape``."""
+    return gym.spaces.Box(-1.0, 1.0, shape=tuple(shape), dtype=np.float32)
+
+
 class AngleFeatures(gym.ObservationWrapper):
     """Observations -> :func:`angle_features` (float32, unbounded ``Box`` of ``D + K`` entries)."""
 
     def __init__(self, env: gym.Env, angle_indices: Sequence[int]) -> None:
         super().__init__(env)
         self.angle_indices = tuple(int(i) for i in angle_indices)
-        dim = feature_dim(env.observation_space.shape[0], self.angle_indices)
-        self.observation_space = gym.spaces.Box(-np.inf, np.inf, shape=(dim,), dtype=np.float32)
+        self.observation_space = feature_space(feature_dim(env.observation_space.shape[0], self.angle_indices))
 
     def observation(self, observation: np.ndarray) -> np.ndarray:
         return angle_features(observation, self.angle_indices).astype(np.float32)
@@ -114,7 +123,7 @@ class NormalisedActions(gym.ActionWrapper):
         super().__init__(env)
         self.low = np.asarray(low, dtype=np.float64)
         self.high = np.asarray(high, dtype=np.float64)
-        self.action_space = gym.spaces.Box(-1.0, 1.0, shape=self.low.shape, dtype=np.float32)
+        self.action_space = normalised_action_space(self.low.shape)
 
     def action(self, action: np.ndarray) -> np.ndarray:
         return to_bounds(action, self.low, self.high)
@@ -126,20 +135,21 @@ def make_agent_env(env: gym.Env, spec: TaskSpec) -> gym.Env:
 
 
 class SB3Policy:
-    """The deterministic policy of an SB3 model: observation ``(D,)`` -> action ``(F,)`` in control units.
+    """The deterministic policy of an SB3 policy network: observation ``(D,)`` -> action ``(F,)`` in control units.
 
-    ``u = to_bounds(model.predict(angle_features(x), deterministic=True))``.
+    ``u = to_bounds(network.predict(angle_features(x), deterministic=True))``, ``network`` an SB3
+    ``BasePolicy`` (a model's ``model.policy``, which ``model.predict`` calls: same actions).
     """
 
-    def __init__(self, model: Any, spec: TaskSpec) -> None:
-        self.model = model
+    def __init__(self, network: Any, spec: TaskSpec) -> None:
+        self.network = network
         self.angle_indices = tuple(spec.angle_indices)
         self.low = np.asarray(spec.action_low, dtype=np.float64)
         self.high = np.asarray(spec.action_high, dtype=np.float64)
 
     def __call__(self, observation: np.ndarray) -> np.ndarray:
         features = angle_features(observation, self.angle_indices).astype(np.float32)
-        action, _ = self.model.predict(features, deterministic=True)
+        action, _ = self.network.predict(features, deterministic=True)
         return to_bounds(action, self.low, self.high)
 
 
@@ -293,7 +303,7 @@ class SB3Learner(Learner):
         torch.set_num_threads(int(self.options["torch_threads"]))
         hp = self.hyperparameters()
         model = self.build_model(make_agent_env(interaction.as_env(), self.spec), hp)
-        policy = SB3Policy(model, self.spec)
+        policy = SB3Policy(model.policy, self.spec)  # the live network: trained further after each hand-over
         hp_file = self._write_hyperparameters(hp)
         self.artifacts.append(hp_file)  # the harness attaches it after the first hand-over
         chunk = int(hp["eval_every_steps"])
@@ -318,19 +328,63 @@ class SB3Learner(Learner):
         return path
 
     # -- saving ---------------------------------------------------------------------------
-    def save_policy(self, policy: Policy, path: Path) -> Path:
-        """Save the SB3 model behind ``policy`` as ``<path>.zip`` (reload with :meth:`load_policy`)."""
-        if not isinstance(policy, SB3Policy):
-            return super().save_policy(policy, path)
-        path = Path(path).with_suffix(".zip")
-        policy.model.save(path)
-        return path
+    @classmethod
+    def _policy_class(cls) -> type:
+        """SB3's policy class behind ``"MlpPolicy"`` (SAC: ``SACPolicy``, PPO: ``ActorCriticPolicy``)."""
+        return cls._algorithm_class().policy_aliases["MlpPolicy"]
 
     @classmethod
-    def load_policy(cls, path: Path, spec: TaskSpec) -> SB3Policy:
-        """The deterministic policy of a model saved by :meth:`save_policy` (for ``spec``'s task)."""
+    def policy_state(cls, policy: Policy) -> dict[str, Any]:
+        """The network's tensors (``weights``: its ``state_dict``), the plain constructor arguments that
+        rebuild it (``kwargs``: :data:`POLICY_KWARGS`), its input and output sizes. Not SB3's ``.zip``,
+        whose metadata is cloudpickled (reading it runs code)."""
+        if not isinstance(policy, SB3Policy):
+            raise TypeError(f"an SB3 learner's policy is an SB3Policy, not a {type(policy).__name__}")
+        network = policy.network
+        arguments = network._get_constructor_parameters()
+        return {
+            "algorithm": cls.algorithm,
+            "observation_dim": int(network.observation_space.shape[0]),
+            "action_dim": int(network.action_space.shape[0]),
+            "kwargs": {k: arguments[k] for k in POLICY_KWARGS if k in arguments},
+            "weights": {k: v.detach().clone() for k, v in network.state_dict().items()},
+        }
+
+    @classmethod
+    def policy_from_state(cls, state: dict[str, Any], spec: TaskSpec) -> SB3Policy:
+        if state["algorithm"] != cls.algorithm:
+            raise ValueError(f"a {state['algorithm']} network, not {cls.algorithm}")
+        features = feature_dim(spec.state_dim, spec.angle_indices)
+        if (state["observation_dim"], state["action_dim"]) != (features, spec.action_dim):
+            raise ValueError(f"a network for {state['observation_dim']} features and {state['action_dim']} controls; "
+                             f"the task has {features} and {spec.action_dim}")
+        kwargs = state["kwargs"]
+        if not isinstance(kwargs, dict) or not set(kwargs) <= set(POLICY_KWARGS):
+            raise ValueError(f"constructor arguments {sorted(kwargs)} beyond {list(POLICY_KWARGS)}")
+        network = cls._policy_class()(feature_space(features), normalised_action_space((spec.action_dim,)), _no_learning, **kwargs)
+        network.load_state_dict(state["weights"])  # strict: missing or unexpected tensors are a RuntimeError
+        network.set_training_mode(False)
+        return SB3Policy(network, spec)
+
+    @classmethod
+    def read_legacy_policy(cls, path: Path, spec: TaskSpec) -> Policy:
+        """An older harness's policy: SB3's ``.zip`` (``model.save``; **reading it runs code**: its metadata is
+        cloudpickled), else the base class's pickle. For ``harness store migrate`` only."""
+        if Path(path).suffix != ".zip":
+            return super().read_legacy_policy(path, spec)
         model = cls._algorithm_class().load(Path(path), device="cpu")
-        return SB3Policy(model, spec)
+        return SB3Policy(model.policy, spec)
+
+
+#: the constructor arguments of SB3's policies that :meth:`SB3Learner.policy_state` stores: plain values; the
+#: others are classes (activation, features extractor, optimiser: SB3's defaults here), spaces and a schedule
+POLICY_KWARGS = ("net_arch", "use_sde", "log_std_init", "use_expln", "clip_mean", "full_std", "squash_output", "ortho_init",
+                 "n_critics", "share_features_extractor", "normalize_images")
+
+
+def _no_learning(progress_remaining: float) -> float:
+    """The learning-rate schedule of a rebuilt network (it is only evaluated)."""
+    return 0.0
 
 
 def _train_metrics(model: Any) -> dict[str, float]:
@@ -437,8 +491,10 @@ __all__ = [
     "SB3Policy",
     "angle_features",
     "feature_dim",
+    "feature_space",
     "from_bounds",
     "make_agent_env",
+    "normalised_action_space",
     "preset",
     "to_bounds",
     "whole_episode_rollout",

@@ -23,7 +23,6 @@ from __future__ import annotations
 
 import copy
 import math
-import time
 from collections.abc import Iterator
 from typing import Any
 
@@ -39,8 +38,18 @@ from harness.threads import run_threads
 from plugins.mc_pilco.optimise import optimise_particles
 from plugins.mc_pilco.particles import ParticleObjective
 from plugins.pilco.cost import CostMoments
-from plugins.pilco.gp import GPModel
-from plugins.pilco.learner import GENERIC, PRESETS, PilcoPolicy, initial_controller, layout_for, preset_with, transitions
+from plugins.pilco.gp import GPHyperparameters, GPModel
+from plugins.pilco.learner import (
+    GENERIC,
+    PRESETS,
+    PilcoPolicy,
+    initial_controller,
+    layout_for,
+    pilco_policy_from_state,
+    pilco_policy_state,
+    preset_with,
+    transitions,
+)
 
 
 class McPilco(Learner):
@@ -107,7 +116,7 @@ class McPilco(Learner):
             hyperparameters, trial = None, 0
         else:  # continue right after the hand-over of trial `trial`
             controller.load_state_dict(resumed["controller"])
-            hyperparameters, trial = resumed["hyperparameters"], resumed["trial"]
+            hyperparameters, trial = GPHyperparameters.from_dict(resumed["hyperparameters"]), resumed["trial"]
         cost = CostMoments(spec.cost, self.cost_width)
         init_mean = torch.as_tensor(np.asarray(spec.init_mean, dtype=np.float64))
         init_cov = torch.as_tensor(np.asarray(spec.init_cov, dtype=np.float64))
@@ -133,11 +142,21 @@ class McPilco(Learner):
             }
             if not math.isfinite(search.J_after):
                 self.metrics["policy_search_failed"] = 1.0
-            self._state = {"controller": copy.deepcopy(controller.state_dict()), "hyperparameters": hyperparameters,
-                           "trial": trial, "time": time.time()}
+            self._state = {"controller": copy.deepcopy(controller.state_dict()), "hyperparameters": hyperparameters.as_dict(),
+                           "trial": trial}
             yield PilcoPolicy(copy.deepcopy(controller), self.layout)
 
     def state_dict(self) -> dict[str, Any]:
-        """Controller parameters, GP hyperparameters (warm start) and the trial; every random draw of a
-        trial's search is seeded by ``(seed, trial)``, so nothing else is needed to continue exactly."""
-        return {k: v for k, v in self._state.items() if k != "time"}
+        """Controller parameters, GP hyperparameters (warm start, as plain tensors) and the trial; every
+        random draw of a trial's search is seeded by ``(seed, trial)``, so nothing else is needed to
+        continue exactly."""
+        return self._state
+
+    @classmethod
+    def policy_state(cls, policy: Policy) -> dict[str, Any]:
+        """PILCO's controllers, saved as PILCO saves them (:func:`~plugins.pilco.learner.pilco_policy_state`)."""
+        return pilco_policy_state(policy)
+
+    @classmethod
+    def policy_from_state(cls, state: dict[str, Any], spec: TaskSpec) -> Policy:
+        return pilco_policy_from_state(state, spec)

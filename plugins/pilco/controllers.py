@@ -18,7 +18,7 @@ from __future__ import annotations
 
 import math
 from collections.abc import Callable
-from typing import Protocol, runtime_checkable
+from typing import Any, Protocol, runtime_checkable
 
 import torch
 from torch import nn
@@ -251,3 +251,31 @@ class SquashedController(nn.Module):
     def moment_map(self, kernel: str | None = None) -> MomentStage:
         base_stage = self.base.moment_map(kernel)
         return base_stage if self.kind is None else SquashStage(base_stage, self.u_max, self.kind)
+
+
+#: the controllers a saved policy may hold, by the name it is saved under, with their parameters in constructor order
+CONTROLLER_TYPES: dict[str, tuple[type[nn.Module], tuple[str, ...]]] = {
+    "rbf": (RBFController, ("centres", "targets", "log_ell")),
+    "linear": (LinearController, ("weight", "bias")),
+}
+
+
+def controller_state(controller: SquashedController) -> dict[str, Any]:
+    """A squashed controller as plain data: ``type`` (a :data:`CONTROLLER_TYPES` name), ``squash`` (its
+    kind or ``None``), ``u_max (F,)`` and ``parameters`` (the base controller's tensors by name)."""
+    names = {cls: name for name, (cls, _) in CONTROLLER_TYPES.items()}
+    if not isinstance(controller, SquashedController) or type(controller.base) not in names:
+        raise TypeError(f"a PILCO policy's controller is a SquashedController of {sorted(CONTROLLER_TYPES)}, not {controller!r}")
+    return {"type": names[type(controller.base)], "squash": controller.kind, "u_max": controller.u_max.detach().clone(),
+            "parameters": {name: p.detach().clone() for name, p in controller.base.named_parameters()}}
+
+
+def controller_from_state(state: dict[str, Any]) -> SquashedController:
+    """The controller :func:`controller_state` described (``KeyError``/``TypeError``/``ValueError`` if it describes none)."""
+    cls, names = CONTROLLER_TYPES[state["type"]]
+    parameters = state["parameters"]
+    if not isinstance(parameters, dict) or set(parameters) != set(names):
+        raise ValueError(f"a {state['type']} controller has parameters {list(names)}, not {sorted(parameters)}")
+    if not all(isinstance(parameters[n], torch.Tensor) for n in names) or not isinstance(state["u_max"], torch.Tensor):
+        raise TypeError("controller parameters and u_max must be tensors")
+    return SquashedController(cls(*(parameters[n] for n in names)), state["u_max"], state["squash"])

@@ -39,8 +39,8 @@ from harness.learner import Learner, Policy
 from harness.options import Option
 from harness.task import Episode, TaskSpec
 from harness.threads import run_threads, torch_threads
-from plugins.pilco.controllers import LinearController, RBFController, SquashedController
-from plugins.pilco.gp import GPModel
+from plugins.pilco.controllers import LinearController, RBFController, SquashedController, controller_from_state, controller_state
+from plugins.pilco.gp import GPHyperparameters, GPModel
 from plugins.pilco.moments import resolve_kernel
 from plugins.pilco.objective import PolicyObjective
 from plugins.pilco.policy_search import optimise_policy
@@ -145,7 +145,11 @@ def transitions(episodes: tuple[Episode, ...] | list[Episode], layout: StateLayo
 
 
 class PilcoPolicy:
-    """The learned controller applied to an observation: augment, controller, squash -> ``(F,)``."""
+    """The learned controller applied to an observation: augment, controller, squash -> ``(F,)``.
+
+    Saved as plain data (:meth:`Pilco.policy_state`): the controller's type, parameters and squashing
+    (:func:`~plugins.pilco.controllers.controller_state`) and the state layout's indices.
+    """
 
     def __init__(self, controller: torch.nn.Module, layout: StateLayout) -> None:
         self.controller = controller
@@ -153,6 +157,25 @@ class PilcoPolicy:
 
     def __call__(self, observation: np.ndarray) -> np.ndarray:
         return act(observation, self.controller, self.layout)
+
+
+def pilco_policy_state(policy: Policy) -> dict[str, Any]:
+    """A :class:`PilcoPolicy` as data: the controller (:func:`~plugins.pilco.controllers.controller_state`)
+    and the layout's fields (shared by every learner that hands over PILCO's controllers)."""
+    if not isinstance(policy, PilcoPolicy):
+        raise TypeError(f"a PILCO policy is a PilcoPolicy, not a {type(policy).__name__}")
+    return {"controller": controller_state(policy.controller), "layout": asdict(policy.layout)}
+
+
+def pilco_policy_from_state(state: dict[str, Any], spec: TaskSpec) -> PilcoPolicy:
+    """The :class:`PilcoPolicy` of :func:`pilco_policy_state`, checked against the task's dimensions."""
+    layout = StateLayout(**state["layout"])
+    if layout.state_dim != spec.state_dim:
+        raise ValueError(f"a policy for {layout.state_dim} states, the task has {spec.state_dim}")
+    controller = controller_from_state(state["controller"])
+    if controller.num_controls != spec.action_dim:
+        raise ValueError(f"a policy with {controller.num_controls} controls, the task has {spec.action_dim}")
+    return PilcoPolicy(controller, layout)
 
 
 def linear_policy_from_gain(spec: TaskSpec, K: np.ndarray, x_star: np.ndarray, squash: str = "trapezoid") -> PilcoPolicy:
@@ -336,7 +359,8 @@ class Pilco(Learner):
                 hyperparameters, trial, predicted, sampled = None, 0, None, None
             else:  # continue right after the hand-over of trial `trial`
                 controller.load_state_dict(resumed["controller"])
-                hyperparameters, trial, predicted = resumed["hyperparameters"], resumed["trial"], resumed["predicted"]
+                hyperparameters = GPHyperparameters.from_dict(resumed["hyperparameters"])
+                trial, predicted = resumed["trial"], resumed["predicted"]
                 self.horizon = resumed.get("planning_horizon", self.horizon)
                 sampled = resumed.get("sampled")
             while True:
@@ -378,7 +402,7 @@ class Pilco(Learner):
                 self.horizon = next_planning_horizon(self.horizon, spec.horizon, search, o["grow_horizon_below"])
                 self._state = {
                     "controller": {k: v.detach().cpu().clone() for k, v in controller.state_dict().items()},
-                    "hyperparameters": hyperparameters.to("cpu"),
+                    "hyperparameters": hyperparameters.to("cpu").as_dict(),
                     "trial": trial,
                     "predicted": predicted,
                     "sampled": sampled,
@@ -400,8 +424,19 @@ class Pilco(Learner):
         return path
 
     def state_dict(self) -> dict[str, Any]:
-        """Controller parameters, GP hyperparameters (warm start), trial, pending prediction (closed form and sampled)."""
+        """Controller parameters, GP hyperparameters (warm start, :meth:`GPHyperparameters.as_dict`), trial,
+        pending prediction (closed form and sampled), planning horizon."""
         return self._state
+
+    @classmethod
+    def policy_state(cls, policy: Policy) -> dict[str, Any]:
+        """:func:`pilco_policy_state`."""
+        return pilco_policy_state(policy)
+
+    @classmethod
+    def policy_from_state(cls, state: dict[str, Any], spec: TaskSpec) -> PilcoPolicy:
+        """:func:`pilco_policy_from_state`."""
+        return pilco_policy_from_state(state, spec)
 
     def _trial_metrics(self, fit, search, failed: float, predicted, num_params: int) -> dict[str, float]:
         metrics = {
@@ -430,7 +465,8 @@ class Pilco(Learner):
         """The trained GP (state dict, for inspection) and its hyperparameters (readable JSON)."""
         h = fit.hyperparameters
         model_path = workdir / f"model_trial{trial:03d}.pt"
-        torch.save({"gp": model.state_dict(), "layout": self.layout, "preset": self.preset}, model_path)
+        # plain data only, so that it loads with torch.load(weights_only=True) (SavedPilcoRun.saved_model)
+        torch.save({"gp": model.state_dict(), "layout": asdict(self.layout), "preset": asdict(self.preset)}, model_path)
         hyp_path = workdir / f"gp_hyperparameters_trial{trial:03d}.json"
         hyp_path.write_text(json.dumps({
             "length_scales": torch.exp(h.log_ell).tolist(), "signal_std": torch.exp(h.log_alpha).tolist(),

@@ -5,8 +5,9 @@ What a PILCO run stores (artifact paths in the run):
 * ``trial001/pilco_settings.json``: the learner's resolved settings (preset, planning horizon,
   model and policy inputs, ``mean_only``), written once (``Pilco._save_settings``);
 * ``trialKKK/model_trialKKK.pt``: the GP trained at trial K, with its layout and preset
-  (``Pilco._save_model``);
-* ``policies/policy_trialKKK.pkl``: the policy handed over at trial K (the runner);
+  (``Pilco._save_model``; tensors and plain values, read with ``torch.load(weights_only=True)``);
+* ``policies/policy_trialKKK.policy``: the policy handed over at trial K (the runner; data only,
+  :mod:`harness.datafile`);
 * ``episodes/interaction_episodes.npz``: every interaction episode, random ones first (the runner).
 
 The benchmarks that re-examine a run (``pilco_prediction_check``, ``gp_budget_check``,
@@ -21,6 +22,7 @@ Files are downloaded into a temporary folder that is removed when the ``with`` b
 from __future__ import annotations
 
 import json
+import pickle
 import tempfile
 from functools import cached_property
 from pathlib import Path
@@ -29,12 +31,16 @@ from typing import Any
 import torch
 
 from harness.discovery import load_learner, load_task
+from harness.datafile import LegacyFormatError, is_legacy, legacy_message, trial_files
 from harness.errors import CheckpointError
+from harness.learner import POLICY_PREFIX
 from harness.runner import load_episodes
 from harness.testrun import task_options
 from harness.tracking import get_run, open_client, resolve_tracking_uri
 from harness.task import Episode
 from plugins.pilco.gp import GPModel
+from plugins.pilco.learner import Preset
+from plugins.pilco.propagate import StateLayout
 
 
 class SavedPilcoRun:
@@ -105,14 +111,23 @@ class SavedPilcoRun:
         return sorted(int(a.path[len("trial"):]) for a in self.client.list_artifacts(self.run_id)
                       if a.is_dir and a.path.startswith("trial"))
 
+    def _policy_files(self) -> dict[int, str]:
+        return trial_files((a.path for a in self.client.list_artifacts(self.run_id, "policies")), POLICY_PREFIX)
+
     def policy_trials(self) -> list[int]:
         """Trials with a saved policy, ascending."""
-        return sorted(int(Path(a.path).stem[len("policy_trial"):]) for a in self.client.list_artifacts(self.run_id, "policies"))
+        return list(self._policy_files())
 
     def saved_model(self, trial: int) -> dict[str, Any]:
-        """The stored dict of trial ``trial``'s GP: ``gp`` (state dict), ``layout``, ``preset``."""
+        """The stored dict of trial ``trial``'s GP: ``gp`` (state dict), ``layout`` (a :class:`StateLayout`),
+        ``preset`` (a :class:`Preset`)."""
         if trial not in self._saved_models:
-            self._saved_models[trial] = torch.load(self.file(f"trial{trial:03d}/model_trial{trial:03d}.pt"), weights_only=False)
+            artifact = f"trial{trial:03d}/model_trial{trial:03d}.pt"
+            try:
+                saved = torch.load(self.file(artifact), weights_only=True)
+            except pickle.UnpicklingError:  # objects of other classes than tensors: an older harness's file
+                raise LegacyFormatError(legacy_message(f"{artifact} of run {self.run_id}", "model file", self.run_id)) from None
+            self._saved_models[trial] = {**saved, "layout": StateLayout(**saved["layout"]), "preset": Preset(**saved["preset"])}
         return self._saved_models[trial]
 
     def model(self, trial: int) -> GPModel:
@@ -123,7 +138,12 @@ class SavedPilcoRun:
 
     def policy(self, trial: int):
         """The policy handed over at trial ``trial`` (a ``PilcoPolicy``)."""
-        return self.learner_cls.load_policy(self.file(f"policies/policy_trial{trial:03d}.pkl"))
+        files = self._policy_files()
+        if trial not in files:
+            raise CheckpointError(f"run {self.run_id} has no policy of trial {trial}; it has trials {list(files)}")
+        if is_legacy(files[trial]):
+            raise LegacyFormatError(legacy_message(files[trial], "policy", self.run_id))
+        return self.learner_cls.load_policy(self.file(files[trial]), self.task.spec)
 
     def episodes(self) -> list[Episode]:
         """Every interaction episode of the run, in the order they happened (random ones first)."""

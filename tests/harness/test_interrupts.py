@@ -102,7 +102,7 @@ def test_sigusr1_stops_the_run_once_its_trial_is_stored_and_the_resume_loses_not
         run(config, tracker=tracker)
     assert signal.getsignal(STOP_AFTER_TRIAL) is before  # the run's handler is gone with it
     assert tracker.status == "KILLED" and [s for s, _ in tracker.metrics["eval_cost"]] == [1, 2]
-    assert any(name.endswith("ckpt_trial002.pkl") for name in tracker.list_artifacts("checkpoints"))
+    assert any(name.endswith("ckpt_trial002.ckpt") for name in tracker.list_artifacts("checkpoints"))
     resumed = run(config, tracker=tracker, resume_run_id=tracker.run_id)
     assert tracker.status == "FINISHED" and [s for s, _ in tracker.metrics["eval_cost"]] == [1, 2, 3, 4, 5]
     assert [r["eval_cost"] for r in resumed.history] == [r["eval_cost"] for r in reference.history]

@@ -467,7 +467,7 @@ def test_bench_group_ignores_options_at_their_default():
 
     old = {"learner": "pilco", "task": "unicycle", "max_trials": "30", "learner.planning_horizon": "20"}
     defaults = _option_defaults("pilco", "unicycle")
-    assert defaults["learner.plan_with_noise"] == "False" and defaults["task.init"] == "paper"
+    assert defaults["learner.plan_with_noise"] == "False" and defaults["task.init"] == "code"
     assert bench_group_id({**old, "learner.plan_with_noise": "False"}, defaults) == bench_group_id(old, defaults)
     assert bench_group_id({**old, "learner.plan_with_noise": "True"}, defaults) != bench_group_id(old, defaults)
     assert bench_group_id({**old, "max_trials": "40"}, defaults) != bench_group_id(old, defaults)

@@ -111,7 +111,7 @@ def test_execution_options_may_change_on_resume_and_old_checkpoints_holding_them
 
 
 def test_corrupt_checkpoint_is_detected(tmp_path):
-    path = save_checkpoint(Checkpoint({"a": 1}, 1, [], {}, {}), tmp_path / "ckpt_trial001.pkl")
+    path = save_checkpoint(Checkpoint({"a": 1}, 1, [], {}, {}), tmp_path / "ckpt_trial001.ckpt")
     assert load_checkpoint(path).trial == 1
     blob = path.read_bytes()
     path.write_bytes(blob[: len(blob) // 2])
@@ -197,4 +197,4 @@ def test_sigusr1_stops_bench_after_the_trial_in_progress_and_prints_how_to_resum
     client = open_client(mlflow_uri)
     last = max(m.step for m in client.get_metric_history(run_id, "eval_cost"))
     assert f"stopped after trial {last} as asked (SIGUSR1): run {run_id} marked KILLED; continue it with the same command plus --resume {run_id}" in err
-    assert max(a.path for a in client.list_artifacts(run_id, "checkpoints")) == f"checkpoints/ckpt_trial{last:03d}.pkl"
+    assert max(a.path for a in client.list_artifacts(run_id, "checkpoints")) == f"checkpoints/ckpt_trial{last:03d}.ckpt"

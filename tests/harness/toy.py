@@ -75,6 +75,14 @@ class BadThenGood(Learner):
     description = "test learner"
     options = (Option("bad_trials", int, 2, "useless hand-overs first", low=0),)
 
+    @classmethod
+    def policy_state(cls, policy):
+        return {"gain": policy.gain}
+
+    @classmethod
+    def policy_from_state(cls, state, spec):
+        return Proportional(float(state["gain"]))
+
     def learn(self, interaction):
         for _ in range(self.options["bad_trials"]):
             interaction.rollout(Proportional(0.0))

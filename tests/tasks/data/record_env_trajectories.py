@@ -27,7 +27,7 @@ STEPS = 200
 TASKS = {
     "cartpole": ("tasks.cartpole", "CartPole", {"horizon": 40}),
     "double-pendulum": ("tasks.double_pendulum", "CartDoublePendulum", {"horizon": 50}),
-    "unicycle": ("tasks.unicycle", "Unicycle", {"horizon": 30}),
+    "unicycle": ("tasks.unicycle", "Unicycle", {"horizon": 30, "init": "paper"}),  # the recording's start (then the default)
     "dmc-cartpole": ("tasks.dmc_cartpole", "DMCCartpole", {"horizon": 60, "measurement_noise": 0.01}),
 }
 
