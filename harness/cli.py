@@ -162,8 +162,11 @@ def bench_command(
     if not quiet and STOP_AFTER_TRIAL is not None:
         click.echo(f"to stop (resumable): Ctrl-C or kill {os.getpid()} now; kill -{STOP_AFTER_TRIAL.name[3:]} {os.getpid()} "
                    "after the trial in progress", err=True)
+    from harness.discovery import load_learner
+
+    progress = SilentProgress() if quiet else RichProgress(logs=load_learner(learner).logs)
     try:
-        result = run(config, tracker=tracker, progress=SilentProgress() if quiet else RichProgress(), resume_run_id=resume)
+        result = run(config, tracker=tracker, progress=progress, resume_run_id=resume)
     except KeyboardInterrupt as stopped:
         what = str(stopped) if isinstance(stopped, StopRequested) else "interrupted"
         click.echo(f"{what}: run {tracker.run_id} marked KILLED; continue it with the same command plus --resume {tracker.run_id}", err=True)
@@ -171,10 +174,10 @@ def bench_command(
     if quiet:
         click.echo(result.summary())
     if isinstance(tracker, MlflowTracker):
-        from harness.report import bench_group_of
-        from harness.tracking import open_client
+        from harness.configuration import bench_group_of
+        from harness.store import Store
 
-        _, group = bench_group_of(open_client(tracker.tracking_uri).get_run(result.run_id).data.params)
+        _, group = bench_group_of(Store(tracker.tracking_uri, tracker.client).run(result.run_id).params)
         click.echo(f"MLflow run {result.run_id} in experiment '{task}' at {tracker.tracking_uri}")
         click.echo(f"  browse: mlflow ui --backend-store-uri {tracker.tracking_uri}")
         click.echo(f"  report: harness report --tracking-uri {tracker.tracking_uri} --sweep {group}"
@@ -243,7 +246,8 @@ def sweep_command(
     after their trial in progress (exit status 130).
     """
     from harness.options import parse_assignments
-    from harness.sweep import RichSweepProgress, SilentSweepProgress, SweepSpec, parse_names, parse_seeds, run_sweep
+    from harness.sweep import SweepSpec, parse_names, parse_seeds, run_sweep
+    from harness.sweep.progress import RichSweepProgress, SilentSweepProgress
 
     spec = SweepSpec(
         learners=parse_names(learners, "learners"),
@@ -268,7 +272,7 @@ def sweep_command(
     stopped = f", {counts['stopped']} stopped as asked, {result.not_started} not started" if result.stopped_early else ""
     click.echo(
         f"sweep {result.sweep_id}: {counts['finished']} finished, {counts['skipped']} skipped (finished before), "
-        f"{counts['failed']} failed{stopped}; parent run {result.parent_run_id} in experiment 'sweeps' at {result.tracking_uri}"
+        f"{counts['failed']} failed{stopped}; parent runs ({'; '.join(result.parent_lines())}) at {result.tracking_uri}"
     )
     click.echo(f"  report: harness report --sweep {result.sweep_id} --tracking-uri {result.tracking_uri}")
     if result.stopped_early:
@@ -288,9 +292,11 @@ def sweep_command(
 @click.option("--fig5-task", default="cartpole", show_default=True, help="Task of the Fig. 5 bar chart.")
 @click.option("--literature", default=None, type=click.Path(dir_okay=False), help="Sourced literature values for Fig. 5 (default: OUT/literature_fig5.csv if present).")
 @click.option("--include-bench", is_flag=True, help="Also report `harness bench` runs, grouped by configuration as pseudo-sweeps bench-<hash>.")
+@click.option("--publish/--no-publish", default=None,
+              help="Write each task's comparison into the store (runs 'comparison · TASK'); default: when --sweep is given.")
 @_guarded
 def report_command(tracking_uri: str | None, sweeps: tuple[str, ...], out: str, table1_learner: str, fig5_task: str,
-                   literature: str | None, include_bench: bool) -> None:
+                   literature: str | None, include_bench: bool, publish: bool | None) -> None:
     """Comparison tables, Table 1, Fig. 5 and learning curves from MLflow alone (nothing is re-run)."""
     from pathlib import Path
 
@@ -298,13 +304,14 @@ def report_command(tracking_uri: str | None, sweeps: tuple[str, ...], out: str, 
 
     from harness.errors import MissingArtifactsWarning
     from harness.report import make_report
-    from harness.tracking import open_client, resolve_tracking_uri
+    from harness.store import Store
 
-    uri = resolve_tracking_uri(tracking_uri)
+    store = Store(tracking_uri)
+    publish = bool(sweeps) if publish is None else publish
     with warnings.catch_warnings(record=True) as caught:
         warnings.simplefilter("always", MissingArtifactsWarning)
-        written = make_report(open_client(uri), Path(out), list(sweeps) or None, uri, table1_learner, fig5_task,
-                              Path(literature) if literature else None, include_bench)
+        written = make_report(store, Path(out), list(sweeps) or None, table1_learner, fig5_task,
+                              Path(literature) if literature else None, include_bench, publish)
     for warning in caught:
         if issubclass(warning.category, MissingArtifactsWarning):
             click.echo(f"warning: {warning.message}", err=True)
@@ -312,5 +319,6 @@ def report_command(tracking_uri: str | None, sweeps: tuple[str, ...], out: str, 
             warnings.showwarning(warning.message, warning.category, warning.filename, warning.lineno)
     for path in written:
         click.echo(str(path))
-    if sweeps:
-        click.echo(f"comparison tables logged on the parent run(s) of sweep {', '.join(sweeps)} (report/comparison.json)")
+    if publish:
+        click.echo(f"comparisons written into the store: the runs 'comparison · TASK' in each task's experiment "
+                   f"(browse: mlflow ui --backend-store-uri {store.uri})")

@@ -17,7 +17,6 @@ from pathlib import Path
 import numpy as np
 
 from harness.discovery import load_learner, load_task
-from harness.errors import CheckpointError
 from harness.evaluation import Evaluator
 
 
@@ -39,18 +38,6 @@ class PolicyTestReport:
 def task_options(params: dict[str, str]) -> dict[str, str]:
     """The task variant options a run recorded (its ``task.*`` params, unset ones left out)."""
     return {k[len("task."):]: v for k, v in params.items() if k.startswith("task.") and v != "None"}
-
-
-def _latest_policy(client, run_id: str, trial: int | None) -> str:
-    files = sorted(a.path for a in client.list_artifacts(run_id, "policies"))
-    if not files:
-        raise CheckpointError(f"run {run_id} has no saved policy (no artifacts under 'policies/')")
-    if trial is None:
-        return files[-1]
-    wanted = [f for f in files if f"trial{trial:03d}" in f]
-    if not wanted:
-        raise CheckpointError(f"run {run_id} has no policy of trial {trial}; it has {', '.join(Path(f).name for f in files)}")
-    return wanted[0]
 
 
 def plot_distance_histogram(distances: np.ndarray, threshold: float | None, title: str, path: Path) -> Path:
@@ -82,18 +69,16 @@ def evaluate_saved_policy(
     trial: int | None = None,
 ) -> PolicyTestReport:
     """Run ``episodes`` test episodes of the run's last (or ``trial``'s) policy; log and return the outcome."""
-    from harness.tracking import get_run, open_client, resolve_tracking_uri
+    from harness.store import Store, layout
 
-    uri = resolve_tracking_uri(tracking_uri)
-    client = open_client(uri)
-    run = get_run(client, run_id, uri)
-    params = run.data.params
+    store = Store(tracking_uri)
+    run = store.run(run_id)
+    params = run.params
     task = load_task(params["task"])(**task_options(params))
-    artifact = _latest_policy(client, run_id, trial)
+    artifact = run.policy(trial)
     out_dir = Path(out_dir) if out_dir is not None else Path(tempfile.mkdtemp(prefix="harness-eval-"))
     out_dir.mkdir(parents=True, exist_ok=True)
-    local = Path(client.download_artifacts(run_id, artifact, str(out_dir)))
-    policy = load_learner(params["learner"]).load_policy(local)
+    policy = load_learner(params["learner"]).load_policy(run.file(artifact))
 
     evaluator = Evaluator(task, n_episodes=episodes, seed=seed)
     try:
@@ -106,7 +91,7 @@ def evaluate_saved_policy(
     if np.isfinite(distances).any():
         histogram = plot_distance_histogram(
             distances, threshold, f"{params['learner']} on {params['task']}: {episodes} test episodes, "
-            f"success {100 * result.success_rate:.1f}%", out_dir / "test_final_distance.png",
+            f"success {100 * result.success_rate:.1f}%", out_dir / layout.TEST_HISTOGRAM,
         )
     summary = {
         "run_id": run_id, "task": params["task"], "learner": params["learner"], "policy": artifact,
@@ -116,9 +101,8 @@ def evaluate_saved_policy(
     summary_path = out_dir / "test_summary.json"
     summary_path.write_text(json.dumps(summary, indent=2))
     np.save(out_dir / "test_final_distances.npy", distances)
-    client.log_metric(run_id, "test_success_rate", result.success_rate)
-    client.log_metric(run_id, "test_episodes", float(episodes))
+    store.log_metrics(run_id, {layout.TEST_SUCCESS_RATE: result.success_rate, layout.TEST_EPISODES: float(episodes)})
     for path in (summary_path, out_dir / "test_final_distances.npy", histogram):
         if path is not None:
-            client.log_artifact(run_id, str(path), "test")
+            store.log_artifact(run_id, path, layout.TEST)
     return PolicyTestReport(run_id, params["task"], artifact, episodes, result.success_rate, distances, result.mean_cost, histogram, summary_path)

@@ -15,13 +15,13 @@ The benchmarks that re-examine a run (``pilco_prediction_check``, ``gp_budget_ch
     with SavedPilcoRun(run_id, tracking_uri) as run:
         model, policy = run.model(15), run.policy(15)
 
-Files are downloaded into a temporary folder that is removed when the ``with`` block ends.
+A local store's files are read where they are (wherever the store was copied to); a server's are
+downloaded into a temporary folder that is removed when the ``with`` block ends.
 """
 
 from __future__ import annotations
 
 import json
-import tempfile
 from functools import cached_property
 from pathlib import Path
 from typing import Any
@@ -30,15 +30,16 @@ import torch
 
 from harness.discovery import load_learner, load_task
 from harness.errors import CheckpointError
-from harness.runner import load_episodes
-from harness.testrun import task_options
-from harness.tracking import get_run, open_client, resolve_tracking_uri
+from harness.store import Store
+from harness.store.layout import trial_folder
 from harness.task import Episode
+from harness.testrun import task_options
 from plugins.pilco.gp import GPModel
 
 
 class SavedPilcoRun:
-    """One PILCO (or ``pilco-mean``) run of a tracking store, opened for reading.
+    """One PILCO (or ``pilco-mean``) run of a tracking store, opened for reading (through
+    :class:`harness.store.RunReader`).
 
     Args:
         run_id: the MLflow run id.
@@ -52,9 +53,8 @@ class SavedPilcoRun:
 
     def __init__(self, run_id: str, tracking_uri: str | None = None, task: str | None = None) -> None:
         self.run_id = run_id
-        uri = resolve_tracking_uri(tracking_uri)
-        self.client = open_client(uri)
-        self.params: dict[str, str] = dict(get_run(self.client, run_id, uri).data.params)
+        self.run = Store(tracking_uri).run(run_id)
+        self.params: dict[str, str] = self.run.params
         learner, task_name = self.params.get("learner", ""), self.params.get("task")
         if not learner.startswith("pilco"):
             raise CheckpointError(f"run {run_id} is a {learner or 'non-harness'!r} run; this needs a PILCO run")
@@ -62,7 +62,6 @@ class SavedPilcoRun:
             raise CheckpointError(f"run {run_id} is PILCO on {task_name!r}; this needs a run on {task!r}")
         self.learner_cls = load_learner(learner)
         self.task = load_task(task_name)(**task_options(self.params))
-        self._tmp = tempfile.TemporaryDirectory(prefix="pilco-run-")
         self._saved_models: dict[int, dict[str, Any]] = {}
 
     def __enter__(self) -> SavedPilcoRun:
@@ -72,23 +71,17 @@ class SavedPilcoRun:
         self.close()
 
     def close(self) -> None:
-        """Remove the downloaded files."""
-        self._tmp.cleanup()
+        """Remove the files downloaded from a server (a local store's files are read in place)."""
+        self.run.close()
 
     def file(self, artifact: str) -> Path:
-        """The local copy of one artifact of the run (downloaded once)."""
-        local = Path(self._tmp.name) / artifact
-        if not local.exists():
-            try:
-                return Path(self.client.download_artifacts(self.run_id, artifact, self._tmp.name))
-            except Exception as exc:  # noqa: BLE001 - MLflow raises several types for a missing artifact
-                raise CheckpointError(f"run {self.run_id} has no artifact {artifact!r} ({exc})") from exc
-        return local
+        """A local copy of one artifact of the run."""
+        return self.run.file(artifact)
 
     @cached_property
     def settings(self) -> dict[str, Any]:
         """The learner's resolved settings (``pilco_settings.json``)."""
-        return json.loads(self.file("trial001/pilco_settings.json").read_text())
+        return json.loads(self.file(f"{trial_folder(1)}/pilco_settings.json").read_text())
 
     @property
     def planning_horizon(self) -> int:
@@ -102,17 +95,16 @@ class SavedPilcoRun:
 
     def model_trials(self) -> list[int]:
         """Trials with a saved GP (``trialKKK/`` folders), ascending."""
-        return sorted(int(a.path[len("trial"):]) for a in self.client.list_artifacts(self.run_id)
-                      if a.is_dir and a.path.startswith("trial"))
+        return self.run.trials_with_files()
 
     def policy_trials(self) -> list[int]:
         """Trials with a saved policy, ascending."""
-        return sorted(int(Path(a.path).stem[len("policy_trial"):]) for a in self.client.list_artifacts(self.run_id, "policies"))
+        return self.run.policy_trials()
 
     def saved_model(self, trial: int) -> dict[str, Any]:
         """The stored dict of trial ``trial``'s GP: ``gp`` (state dict), ``layout``, ``preset``."""
         if trial not in self._saved_models:
-            self._saved_models[trial] = torch.load(self.file(f"trial{trial:03d}/model_trial{trial:03d}.pt"), weights_only=False)
+            self._saved_models[trial] = torch.load(self.file(f"{trial_folder(trial)}/model_trial{trial:03d}.pt"), weights_only=False)
         return self._saved_models[trial]
 
     def model(self, trial: int) -> GPModel:
@@ -123,12 +115,12 @@ class SavedPilcoRun:
 
     def policy(self, trial: int):
         """The policy handed over at trial ``trial`` (a ``PilcoPolicy``)."""
-        return self.learner_cls.load_policy(self.file(f"policies/policy_trial{trial:03d}.pkl"))
+        return self.learner_cls.load_policy(self.file(self.run.policy(trial)))
 
     def episodes(self) -> list[Episode]:
         """Every interaction episode of the run, in the order they happened (random ones first)."""
-        return load_episodes(self.file("episodes/interaction_episodes.npz"))
+        return self.run.episodes()
 
     def metric(self, key: str) -> dict[int, float]:
         """A per-trial metric's history, ``{step: value}``."""
-        return {int(m.step): m.value for m in self.client.get_metric_history(self.run_id, key)}
+        return self.run.history(key)
