@@ -76,8 +76,13 @@ STAT_NOTE = (
 
 
 def comparison_markdown(task: str, rows: Sequence[dict[str, Any]]) -> str:
-    lines = [f"## {task}", "", STAT_NOTE, "",
-             "| learner | solved | median time to success [95 % CI] (s) | IQM [95 % CI] (s) | trials to success | unsolved at (s) "
+    """``comparison_<task>.md``: the task, :data:`STAT_NOTE`, then :func:`comparison_table`."""
+    return "\n".join([f"## {task}", "", STAT_NOTE, "", comparison_table(rows)])
+
+
+def comparison_table(rows: Sequence[dict[str, Any]]) -> str:
+    """The comparison's markdown table, a line per row."""
+    lines = ["| learner | solved | median time to success [95 % CI] (s) | IQM [95 % CI] (s) | trials to success | unsolved at (s) "
              "| wall time (s) | errors | median with the stopped runs (s) |",
              "|---|---|---|---|---|---|---|---|---|"]
     for r in rows:

@@ -1,7 +1,8 @@
 """The comparison in the MLflow UI: per task, a run ``comparison · <task>`` carrying the whole table
-(``log_table``: every row, unsolved runs counted) and the report's files of that task, with one child
-run per row whose metrics are the row's statistics, so that the runs table and its charts compare the
-learners directly; and every reported run tagged with the row it was counted in.
+(``log_table``: every row, unsolved runs counted; and in its description) and the report's files of
+that task, and a run per row (``harness.role = 'comparison-row'``, top level so that a search for them
+lists them flat) whose metrics are the row's statistics, so that the runs table and its charts compare
+the learners directly; and every reported run tagged with the row it was counted in.
 
 The row runs are made anew by every report (a statistic that became infinite, and so is not logged,
 must not leave an older value showing); the comparison run is kept and its files replaced.
@@ -18,10 +19,14 @@ from typing import Any
 import numpy as np
 
 from harness.configuration import bench_group_of, config_label
-from harness.report.comparison import comparison_markdown
+from harness.report.comparison import STAT_NOTE, comparison_table
 from harness.report.labels import groups
 from harness.report.records import ReportData, RunRecord
 from harness.store import Store, layout
+
+
+#: the row runs of a task's experiment
+ROWS = f"tags.`{layout.ROLE_TAG}` = '{layout.ROLE_ROW}'"
 
 
 def row_metrics(row: Mapping[str, Any], runs: Sequence[RunRecord]) -> dict[str, float]:
@@ -53,10 +58,11 @@ def row_metrics(row: Mapping[str, Any], runs: Sequence[RunRecord]) -> dict[str, 
 
 
 def comparison_note(task: str, rows: Sequence[Mapping[str, Any]], sweeps: Sequence[str]) -> str:
-    """The comparison run's description: the table as in ``comparison_<task>.md`` and where it came from."""
-    return (comparison_markdown(task, rows) + f"\n\nMade by `harness report` from the sweeps and bench groups {', '.join(f'`{s}`' for s in sweeps)}. "
-            "Its child runs hold each row's statistics as metrics (chart them, e.g. `solved_fraction`, "
-            "`median_time_to_success_at_least_seconds`); the files are under `report/`.")
+    """The comparison run's description: the table of ``comparison_<task>.md``, how to read it, where it came from."""
+    return (f"**{task}: every configuration's runs, unsolved runs counted** (`report/comparison_{task}.md`)\n\n{comparison_table(rows)}\n"
+            f"{STAT_NOTE}\n\nMade by `harness report` from the sweeps and bench groups {', '.join(f'`{s}`' for s in sweeps)}. "
+            f"The runs tagged `{layout.ROLE_TAG} = '{layout.ROLE_ROW}'` hold each row's statistics as metrics (chart them, e.g. "
+            "`solved_fraction`, `median_time_to_success_at_least_seconds`); the files are under `report/`.")
 
 
 def publish_comparisons(store: Store, data: ReportData, comparisons: Mapping[str, Sequence[Mapping[str, Any]]],
@@ -68,9 +74,9 @@ def publish_comparisons(store: Store, data: ReportData, comparisons: Mapping[str
         experiment_id = store.ensure_experiment(layout.task_experiment(task))
         found = store.search([experiment_id], f"tags.`{layout.ROLE_TAG}` = '{layout.ROLE_COMPARISON}'")
         found.sort(key=lambda r: r.start_time)
+        store.delete_runs([r.run_id for r in found[1:]] + [r.run_id for r in store.search([experiment_id], ROWS)])
         if found:
             comparison = found[0].run_id
-            store.delete_runs([r.run_id for r in found[1:]] + [r.run_id for r in store.children(found[0])])
         else:
             comparison = store.create_run(experiment_id, layout.comparison_name(task),
                                           {layout.ROLE_TAG: layout.ROLE_COMPARISON, layout.TASK_TAG: task})
@@ -81,7 +87,7 @@ def publish_comparisons(store: Store, data: ReportData, comparisons: Mapping[str
             runs, halted = counted.get(task, {}).get(label, []), stopped.get(task, {}).get(label, [])
             learner = (runs or halted)[0].learner
             run_id = store.create_run(experiment_id, layout.row_name(label, task), {
-                layout.ROLE_TAG: layout.ROLE_ROW, layout.PARENT_TAG: comparison, layout.TASK_TAG: task,
+                layout.ROLE_TAG: layout.ROLE_ROW, layout.COMPARISON_TAG: comparison, layout.TASK_TAG: task,
                 layout.LEARNER_TAG: learner, layout.ROW_TAG: label, "harness.sweeps": row["sweep_id"],
                 layout.NOTE_TAG: f"Row `{label}` of the comparison on {task}: seeds {row['seeds'] or '–'} counted "
                                  f"({row['solved']}/{row['runs']} solved), {row['stopped']} stopped before their limit."},

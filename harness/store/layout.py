@@ -13,8 +13,8 @@ read and continued there.
 * a run (`harness bench`; no role) or a sweep cell (role ``cell``, tag ``harness.sweep_id``), named
   ``pilco · cartpole [horizon=30] · s3`` (:func:`run_name`);
 * a sweep parent (role ``sweep``) per task of a sweep, named ``sweep 4d745437f024 · cartpole``;
-* the report's comparison run per task (role ``comparison``), named ``comparison · cartpole``, with
-  one child per row of the comparison table (role ``comparison-row``), named after the row.
+* the report's comparison run per task (role ``comparison``), named ``comparison · cartpole``, and a
+  run per row of its table (role ``comparison-row``, tag ``harness.comparison_run``), named after the row.
 """
 
 from __future__ import annotations
@@ -47,6 +47,8 @@ ERROR_TAG = "harness.error"
 CONFIG_HASH_TAG = "harness.config_hash"
 #: the learner and the settings away from the installed defaults, ``pilco [horizon=30]``
 CONFIG_LABEL_TAG = "harness.config_label"
+#: a comparison row's comparison run (the run id)
+COMPARISON_TAG = "harness.comparison_run"
 #: the comparison row the last report counted the run in (its label in ``comparison_<task>.md``)
 ROW_TAG = "harness.report_row"
 #: ``true`` on a run stopped before its limit (KILLED) that continues from its checkpoint, ``false`` on

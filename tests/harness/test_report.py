@@ -450,9 +450,10 @@ def test_report_regenerates_tables_and_figures_from_mlflow(swept, tmp_path):
     assert {a.path for a in comparison.artifacts("report")} >= {"report/comparison.json", "report/comparison_sweep-toy.md",
                                                                   "report/curves_sweep-toy.png", "report/fig5.png"}
     assert "| sweep-steps | 2/3 | 8.0 [" in comparison.tags["mlflow.note.content"]
-    # a child run per row whose metrics are the row's statistics, unsolved runs counted: the learner that
+    # a run per row whose metrics are the row's statistics, unsolved runs counted: the learner that
     # never solved keeps a row (solved fraction 0, a median only as a lower bound), none is dropped
-    rows = {r.tags["harness.report_row"]: r for r in store.children(comparison)}
+    rows = {r.tags["harness.report_row"]: r for r in store.search([experiment], "tags.`harness.role` = 'comparison-row'")}
+    assert {r.tags["harness.comparison_run"] for r in rows.values()} == {comparison.run_id}
     assert set(rows) == {"sweep-steps", "random", "sweep-boom"} and rows["random"].name == "random · sweep-toy"
     steps, never = rows["sweep-steps"].metrics, rows["random"].metrics
     assert (steps["runs"], steps["solved_runs"], steps["solved_fraction"]) == (3, 2, pytest.approx(2 / 3))
@@ -470,7 +471,7 @@ def test_report_regenerates_tables_and_figures_from_mlflow(swept, tmp_path):
     again = CliRunner().invoke(main, ["report", "--tracking-uri", uri, "--sweep", result.sweep_id, "--out", str(out)])
     assert again.exit_code == 0, again.output
     (same,) = store.search([experiment], "tags.`harness.role` = 'comparison'")
-    assert same.run_id == comparison.run_id and len(store.children(same)) == 3
+    assert same.run_id == comparison.run_id and len(store.search([experiment], "tags.`harness.role` = 'comparison-row'")) == 3
 
 
 def test_report_is_deterministic_and_rejects_unknown_sweeps(swept, tmp_path):
