@@ -322,3 +322,70 @@ def report_command(tracking_uri: str | None, sweeps: tuple[str, ...], out: str, 
     if publish:
         click.echo(f"comparisons written into the store: the runs 'comparison · TASK' in each task's experiment "
                    f"(browse: mlflow ui --backend-store-uri {store.uri})")
+
+
+@main.group("store")
+def store_group() -> None:
+    """A local tracking store copied to another path (a clone): relocate it, check it, describe its runs' files."""
+
+
+#: the store a `harness store` command works on
+_store_uri = click.option("--tracking-uri", default=None, help="The SQLite store (default: $MLFLOW_TRACKING_URI or sqlite:///./mlflow.db).")
+
+
+@store_group.command("relocate")
+@_store_uri
+@_guarded
+def store_relocate_command(tracking_uri: str | None) -> None:
+    """Point every artifact location of the store at its own folder (after a copy or a clone elsewhere)."""
+    from harness.store.connection import resolve_tracking_uri
+    from harness.store.relocate import relocate
+
+    uri = resolve_tracking_uri(tracking_uri)
+    done = relocate(uri)
+    if not done.total:
+        click.echo(f"{uri}: every artifact location is already in the store's folder")
+        return
+    counts = ", ".join(f"{n} {table}" for table, n in done.rewritten.items())
+    click.echo(f"{uri}: {counts} now keep their artifacts in the store's folder (before: {', '.join(done.previous_roots)})")
+
+
+@store_group.command("check")
+@_store_uri
+@_guarded
+def store_check_command(tracking_uri: str | None) -> None:
+    """Say, per run, where MLflow (and `mlflow ui`) finds its files; exit 1 if the store needs relocating."""
+    from harness.store import Store
+    from harness.store.relocate import check
+
+    store = Store(tracking_uri)
+    runs = check(store)
+    moved = [r for r in runs if not r.located]
+    empty = [r for r in runs if r.located and not r.files]
+    click.echo(f"{store.uri}: {len(runs)} runs, {sum(r.files for r in runs)} files; {len(runs) - len(moved)} located in the store's folder, "
+               f"{len(empty)} of them without any file here")
+    for r in empty:
+        click.echo(f"  no files: {r.run_id} {r.name} ({r.status})")
+    if moved:
+        for r in moved[:20]:
+            click.echo(f"  recorded elsewhere: {r.run_id} {r.name}" + (" (its files are in this store's folder)" if r.moved else ""))
+        _fail(f"{len(moved)} runs record artifact locations outside the store's folder; "
+              f"run `harness store relocate --tracking-uri {store.uri}`", 1)
+
+
+@store_group.command("describe")
+@_store_uri
+@_guarded
+def store_describe_command(tracking_uri: str | None) -> None:
+    """Write into each run's description which of its files a committed store keeps and which it leaves out."""
+    from harness.store import Store, layout
+    from harness.store.committed import BUDGET_BYTES, committed, describe_files
+
+    store = Store(tracking_uri)
+    kept = 0
+    runs = store.search(None)
+    for run in runs:
+        store.set_tags(run.run_id, {layout.NOTE_TAG: describe_files(run)})
+        kept += sum(a.size for a in run.all_artifacts() if committed(a.path))
+    click.echo(f"{store.uri}: {len(runs)} run descriptions say what is committed; the committed kinds of files come to "
+               f"{kept / 1e6:.1f} MB here (budget {BUDGET_BYTES / 1e6:.0f} MB, results/README.md)")

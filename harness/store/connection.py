@@ -144,16 +144,16 @@ def relative_artifact_path(uri: str) -> str | None:
 
 
 def local_artifact_root(tracking_uri: str, artifact_uri: str) -> Path | None:
-    """Where a run's (or an experiment's) artifacts are on this machine: the recorded path if it
-    exists, else the same place under this store's own ``mlruns`` folder (a store copied or cloned
-    from another path records the old one); ``None`` for a store that serves its artifacts (a server)."""
+    """Where a run's (or an experiment's) artifacts are on this machine: the same place under this
+    store's own ``mlruns`` folder (a store copied or cloned from another path records the old one) if
+    it is there, else the recorded path; ``None`` for a store that serves its artifacts (a server)."""
     recorded = uri_path(artifact_uri)
     if recorded is None:
         return None
     folder, relative = store_folder(tracking_uri), relative_artifact_path(artifact_uri)
-    if recorded.exists() or folder is None or relative is None:
-        return recorded
-    return folder / ARTIFACTS_FOLDER / relative
+    if folder is not None and relative is not None and (folder / ARTIFACTS_FOLDER / relative).exists():
+        return folder / ARTIFACTS_FOLDER / relative
+    return recorded
 
 
 def check_located(tracking_uri: str, artifact_location: str, what: str) -> None:
