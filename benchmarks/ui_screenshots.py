@@ -70,7 +70,7 @@ def pages(store: Store, tasks: list[str] | None = None) -> list[Page]:
                  "columns: pick them under Columns, MLflow 3 shows none by default)",
                  f"{runs}?{where}&orderByKey=metrics.%60solved_fraction%60&orderByAsc=false", (*names, "solved_fraction")),
             Page(f"{task}_charts", f"{task}: the rows' statistics charted (a bar per row)", f"{runs}?{where}&compareRunsMode=CHART",
-                 ("solved_fraction", "median_time_to_success_at_least_seconds"), height=2400),
+                 charted(rows), height=2400),
             Page(f"{task}_comparison", f"{task}: the run `{comparison.name}`, its description the comparison table",
                  f"#/experiments/{comparison.experiment_id}/runs/{comparison.run_id}", (comparison.name, "unsolved runs counted")),
             Page(f"{task}_table", f"{task}: the logged table `{layout.REPORT}/{layout.COMPARISON_TABLE}`",
@@ -80,6 +80,13 @@ def pages(store: Store, tasks: list[str] | None = None) -> list[Page]:
                  (layout.comparison_name(task),)),
         ]
     return out
+
+
+def charted(rows: list) -> tuple[str, ...]:
+    """The statistics a task's charts must show: the solved fraction and the median's lower bound where a
+    row has finished runs (a row of stopped runs only has neither), else the run counts."""
+    logged = {key for row in rows for key in row.metrics}
+    return tuple(k for k in ("solved_fraction", "median_time_to_success_at_least_seconds") if k in logged) or ("stopped_runs",)
 
 
 def free_port() -> int:

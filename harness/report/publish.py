@@ -18,7 +18,7 @@ from typing import Any
 
 import numpy as np
 
-from harness.configuration import bench_group_of, config_label
+from harness.configuration import bench_group_of, config_label, settings_of
 from harness.report.comparison import STAT_NOTE, comparison_table
 from harness.report.labels import groups
 from harness.report.records import ReportData, RunRecord
@@ -111,9 +111,15 @@ def _replace_files(store: Store, run_id: str, rows: Sequence[Mapping[str, Any]],
 
 
 def _tag_reported(store: Store, record: RunRecord) -> None:
-    """The run's row in this report; and its configuration's hash and label where it has none (runs
-    made before the runner tagged them)."""
+    """The run's row in this report. A run made before the runner named and tagged runs also gets its
+    configuration's hash and label, the readable name (``pilco · cartpole [horizon=30] · s3`` for
+    ``pilco-cartpole-s3``) and, stopped before its limit, whether a checkpoint of it is here to resume from."""
     tags = {layout.ROW_TAG: record.label}
-    if record.reader is not None and layout.CONFIG_HASH_TAG not in record.reader.tags:
-        tags |= {layout.CONFIG_HASH_TAG: bench_group_of(record.reader.params)[1], layout.CONFIG_LABEL_TAG: config_label(record.reader.params)}
+    run = record.reader
+    if run is not None and layout.CONFIG_HASH_TAG not in run.tags:
+        tags |= {layout.CONFIG_HASH_TAG: bench_group_of(run.params)[1], layout.CONFIG_LABEL_TAG: config_label(run.params)}
+        if run.name == f"{record.learner}-{record.task}-s{record.seed}":
+            store.rename(run.run_id, layout.run_name(record.learner, record.task, record.seed, settings_of(run.params)))
+        if run.status == "KILLED" and layout.RESUMABLE_TAG not in run.tags:
+            tags[layout.RESUMABLE_TAG] = str(bool(run.artifacts(layout.CHECKPOINTS))).lower()
     store.set_tags(record.run_id, tags)

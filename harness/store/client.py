@@ -141,6 +141,10 @@ class Store:
         safe = [{k: (None if isinstance(v, float) and not math.isfinite(v) else v) for k, v in r.items()} for r in rows]
         self.client.log_table(run_id, data=pd.DataFrame(safe), artifact_file=artifact_file)
 
+    def rename(self, run_id: str, name: str) -> None:
+        """Give the run the name ``name`` (what the UI lists it by)."""
+        self.client.update_run(run_id, name=name)
+
     def set_status(self, run_id: str, status: RunStatus) -> None:
         """Mark the run ``status``: RUNNING again, or ended (FINISHED, FAILED, KILLED)."""
         if status == "RUNNING":

@@ -75,6 +75,22 @@ def test_a_legacy_sweep_goes_on_in_its_experiment_and_the_report_reads_both_layo
     assert f"- sweep `{old.sweep_id}` (parent run `{parent}`, status FINISHED):" in notes
     assert f"- sweep `{new.sweep_id}` (parent runs `{new_parent}` (sweep-toy, FINISHED)):" in notes
 
+    # a bench run as runs were made before they were named and tagged: the published report names and tags it
+    experiment = store.experiment_id("sweep-toy")
+    old_run = store.create_run(experiment, "sweep-steps-sweep-toy-s9", {"learner": "sweep-steps", "task": "sweep-toy", "seed": "9"},
+                               {"learner": "sweep-steps", "task": "sweep-toy", "seed": 9, "max_trials": 4, "budget_seconds": None,
+                                "eval_episodes": 1})
+    (tmp_path / "ckpt_trial002.pkl").write_bytes(b"state")
+    store.log_artifact(old_run, tmp_path / "ckpt_trial002.pkl", layout.CHECKPOINTS)
+    store.log_metrics(old_run, {"interaction_seconds": 8.0}, step=2)
+    store.set_status(old_run, "KILLED")
+    published = CliRunner().invoke(main, ["report", "--tracking-uri", uri, "--out", str(out), "--include-bench", "--publish"])
+    assert published.exit_code == 0, published.output
+    renamed = store.run(old_run)
+    assert renamed.name == "sweep-steps · sweep-toy · s9" and renamed.tags[layout.RESUMABLE_TAG] == "true"
+    assert renamed.tags[layout.CONFIG_LABEL_TAG] == "sweep-steps" and renamed.tags[layout.CONFIG_HASH_TAG] == bench_group_of(renamed.params)[1]
+    assert renamed.tags[layout.ROW_TAG] == "sweep-steps [max_trials=4]"
+
 
 def test_bench_resume_finds_the_bench_run_not_a_sweep_cell(plugins, mlflow_uri, monkeypatch):
     """Sweep cells now live in their task's experiment beside the bench runs; `--resume` without an id
