@@ -163,8 +163,11 @@ def bench_command(
     if not quiet and STOP_AFTER_TRIAL is not None:
         click.echo(f"to stop (resumable): Ctrl-C or kill {os.getpid()} now; kill -{STOP_AFTER_TRIAL.name[3:]} {os.getpid()} "
                    "after the trial in progress", err=True)
+    from harness.discovery import load_learner
+
+    progress = SilentProgress() if quiet else RichProgress(logs=load_learner(learner).logs)
     try:
-        result = run(config, tracker=tracker, progress=SilentProgress() if quiet else RichProgress(), resume_run_id=resume)
+        result = run(config, tracker=tracker, progress=progress, resume_run_id=resume)
     except KeyboardInterrupt as stopped:
         what = str(stopped) if isinstance(stopped, StopRequested) else "interrupted"
         click.echo(f"{what}: run {tracker.run_id} marked KILLED; continue it with the same command plus --resume {tracker.run_id}", err=True)
@@ -172,10 +175,10 @@ def bench_command(
     if quiet:
         click.echo(result.summary())
     if isinstance(tracker, MlflowTracker):
-        from harness.report import bench_group_of
-        from harness.tracking import open_client
+        from harness.configuration import bench_group_of
+        from harness.store import Store
 
-        _, group = bench_group_of(open_client(tracker.tracking_uri).get_run(result.run_id).data.params)
+        _, group = bench_group_of(Store(tracker.tracking_uri, tracker.client).run(result.run_id).params)
         click.echo(f"MLflow run {result.run_id} in experiment '{task}' at {tracker.tracking_uri}")
         click.echo(f"  browse: mlflow ui --backend-store-uri {tracker.tracking_uri}")
         click.echo(f"  report: harness report --tracking-uri {tracker.tracking_uri} --sweep {group}"
@@ -208,7 +211,8 @@ def eval_command(run_id: str, episodes: int, seed: int, trial: int | None, out_d
 
 @main.group("store")
 def store_group() -> None:
-    """Maintain a tracking store's runs (convert the files of older harness versions)."""
+    """Maintain a tracking store: convert runs of older harness versions (migrate); a local store copied
+    to another path (a clone): relocate it, check it, describe its runs' files."""
 
 
 @store_group.command("migrate")
@@ -225,15 +229,15 @@ def migrate_command(run_ids: tuple[str, ...], all_runs: bool, tracking_uri: str 
     and writes its data-only equivalent to the run (old files stay, unused). Only for stores you trust.
     """
     from harness.migration import WARNING, migrate_run, runs_with_legacy_files
-    from harness.tracking import get_run, open_client, resolve_tracking_uri
+    from harness.store import Store
 
     if bool(run_ids) == all_runs:
         raise HarnessError("give the RUN_IDs to convert or --all (not both)")
-    uri = resolve_tracking_uri(tracking_uri)
-    client = open_client(uri)
+    store = Store(tracking_uri)
+    uri = store.uri
     for run_id in run_ids:
-        get_run(client, run_id, uri)  # an unknown id fails before anything is read
-    targets = list(run_ids) or runs_with_legacy_files(client)
+        store.run(run_id)  # an unknown id fails before anything is read
+    targets = list(run_ids) or runs_with_legacy_files(store)
     if not targets:
         click.echo(f"no run in {uri} has files in the old format")
         return
@@ -241,7 +245,7 @@ def migrate_command(run_ids: tuple[str, ...], all_runs: bool, tracking_uri: str 
     if not yes:
         click.confirm(f"convert the old files of {len(targets)} run(s) in {uri}?", abort=True, err=True)
     for run_id in targets:
-        if not migrate_run(client, run_id, say=click.echo):
+        if not migrate_run(store, run_id, say=click.echo):
             click.echo(f"run {run_id}: nothing to convert")
 
 
@@ -283,7 +287,8 @@ def sweep_command(
     after their trial in progress (exit status 130).
     """
     from harness.options import parse_assignments
-    from harness.sweep import RichSweepProgress, SilentSweepProgress, SweepSpec, parse_names, parse_seeds, run_sweep
+    from harness.sweep import SweepSpec, parse_names, parse_seeds, run_sweep
+    from harness.sweep.progress import RichSweepProgress, SilentSweepProgress
 
     spec = SweepSpec(
         learners=parse_names(learners, "learners"),
@@ -308,7 +313,7 @@ def sweep_command(
     stopped = f", {counts['stopped']} stopped as asked, {result.not_started} not started" if result.stopped_early else ""
     click.echo(
         f"sweep {result.sweep_id}: {counts['finished']} finished, {counts['skipped']} skipped (finished before), "
-        f"{counts['failed']} failed{stopped}; parent run {result.parent_run_id} in experiment 'sweeps' at {result.tracking_uri}"
+        f"{counts['failed']} failed{stopped}; parent runs ({'; '.join(result.parent_lines())}) at {result.tracking_uri}"
     )
     click.echo(f"  report: harness report --sweep {result.sweep_id} --tracking-uri {result.tracking_uri}")
     if result.stopped_early:
@@ -328,9 +333,11 @@ def sweep_command(
 @click.option("--fig5-task", default="cartpole", show_default=True, help="Task of the Fig. 5 bar chart.")
 @click.option("--literature", default=None, type=click.Path(dir_okay=False), help="Sourced literature values for Fig. 5 (default: OUT/literature_fig5.csv if present).")
 @click.option("--include-bench", is_flag=True, help="Also report `harness bench` runs, grouped by configuration as pseudo-sweeps bench-<hash>.")
+@click.option("--publish/--no-publish", default=None,
+              help="Write each task's comparison into the store (runs 'comparison · TASK'); default: when --sweep is given.")
 @_guarded
 def report_command(tracking_uri: str | None, sweeps: tuple[str, ...], out: str, table1_learner: str, fig5_task: str,
-                   literature: str | None, include_bench: bool) -> None:
+                   literature: str | None, include_bench: bool, publish: bool | None) -> None:
     """Comparison tables, Table 1, Fig. 5 and learning curves from MLflow alone (nothing is re-run)."""
     from pathlib import Path
 
@@ -338,13 +345,14 @@ def report_command(tracking_uri: str | None, sweeps: tuple[str, ...], out: str, 
 
     from harness.errors import MissingArtifactsWarning
     from harness.report import make_report
-    from harness.tracking import open_client, resolve_tracking_uri
+    from harness.store import Store
 
-    uri = resolve_tracking_uri(tracking_uri)
+    store = Store(tracking_uri)
+    publish = bool(sweeps) if publish is None else publish
     with warnings.catch_warnings(record=True) as caught:
         warnings.simplefilter("always", MissingArtifactsWarning)
-        written = make_report(open_client(uri), Path(out), list(sweeps) or None, uri, table1_learner, fig5_task,
-                              Path(literature) if literature else None, include_bench)
+        written = make_report(store, Path(out), list(sweeps) or None, table1_learner, fig5_task,
+                              Path(literature) if literature else None, include_bench, publish)
     for warning in caught:
         if issubclass(warning.category, MissingArtifactsWarning):
             click.echo(f"warning: {warning.message}", err=True)
@@ -352,5 +360,68 @@ def report_command(tracking_uri: str | None, sweeps: tuple[str, ...], out: str, 
             warnings.showwarning(warning.message, warning.category, warning.filename, warning.lineno)
     for path in written:
         click.echo(str(path))
-    if sweeps:
-        click.echo(f"comparison tables logged on the parent run(s) of sweep {', '.join(sweeps)} (report/comparison.json)")
+    if publish:
+        click.echo(f"comparisons written into the store: the runs 'comparison · TASK' in each task's experiment "
+                   f"(browse: mlflow ui --backend-store-uri {store.uri})")
+
+
+#: the store a `harness store` command works on
+_store_uri = click.option("--tracking-uri", default=None, help="The SQLite store (default: $MLFLOW_TRACKING_URI or sqlite:///./mlflow.db).")
+
+
+@store_group.command("relocate")
+@_store_uri
+@_guarded
+def store_relocate_command(tracking_uri: str | None) -> None:
+    """Point every artifact location of the store at its own folder (after a copy or a clone elsewhere)."""
+    from harness.store.connection import resolve_tracking_uri
+    from harness.store.relocate import relocate
+
+    uri = resolve_tracking_uri(tracking_uri)
+    done = relocate(uri)
+    if not done.total:
+        click.echo(f"{uri}: every artifact location is already in the store's folder")
+        return
+    counts = ", ".join(f"{n} {table}" for table, n in done.rewritten.items())
+    click.echo(f"{uri}: {counts} now keep their artifacts in the store's folder (before: {', '.join(done.previous_roots)})")
+
+
+@store_group.command("check")
+@_store_uri
+@_guarded
+def store_check_command(tracking_uri: str | None) -> None:
+    """Say, per run, where MLflow (and `mlflow ui`) finds its files; exit 1 if the store needs relocating."""
+    from harness.store import Store
+    from harness.store.relocate import check
+
+    store = Store(tracking_uri)
+    runs = check(store)
+    moved = [r for r in runs if not r.located]
+    empty = [r for r in runs if r.located and not r.files]
+    click.echo(f"{store.uri}: {len(runs)} runs, {sum(r.files for r in runs)} files; {len(runs) - len(moved)} located in the store's folder, "
+               f"{len(empty)} of them without any file here")
+    for r in empty:
+        click.echo(f"  no files: {r.run_id} {r.name} ({r.status})")
+    if moved:
+        for r in moved[:20]:
+            click.echo(f"  recorded elsewhere: {r.run_id} {r.name}" + (" (its files are in this store's folder)" if r.moved else ""))
+        _fail(f"{len(moved)} runs record artifact locations outside the store's folder; "
+              f"run `harness store relocate --tracking-uri {store.uri}`", 1)
+
+
+@store_group.command("describe")
+@_store_uri
+@_guarded
+def store_describe_command(tracking_uri: str | None) -> None:
+    """Write into each run's description which of its files a committed store keeps and which it leaves out."""
+    from harness.store import Store, layout
+    from harness.store.committed import BUDGET_BYTES, committed, describe_files
+
+    store = Store(tracking_uri)
+    kept = 0
+    runs = store.search(None)
+    for run in runs:
+        store.set_tags(run.run_id, {layout.NOTE_TAG: describe_files(run)})
+        kept += sum(a.size for a in run.all_artifacts() if committed(a.path))
+    click.echo(f"{store.uri}: {len(runs)} run descriptions say what is committed; the committed kinds of files come to "
+               f"{kept / 1e6:.1f} MB here (budget {BUDGET_BYTES / 1e6:.0f} MB, results/README.md)")

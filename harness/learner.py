@@ -31,6 +31,7 @@ from typing import TYPE_CHECKING, Any, ClassVar, Protocol
 
 import numpy as np
 
+from harness.learner_logs import Logs
 from harness.options import Option, OptionSet
 from harness.task import TaskSpec
 
@@ -71,6 +72,8 @@ class Learner(ABC):
     #: limits used when the user gives neither --max-trials nor --budget-seconds
     default_max_trials: ClassVar[int | None] = 20
     default_budget_seconds: ClassVar[float | None] = None
+    #: what its ``metrics`` and ``artifacts`` mean, for progress lines and reports (:class:`~harness.learner_logs.Logs`)
+    logs: ClassVar[Logs] = Logs()
 
     def __init__(self, spec: TaskSpec, options: dict[str, Any] | None = None, seed: int = 0) -> None:
         self.spec = spec
@@ -92,6 +95,11 @@ class Learner(ABC):
     def default_limits(cls, spec: TaskSpec) -> tuple[int | None, float | None]:
         """``(max_trials, budget_seconds)`` used when the user sets neither (may depend on the task)."""
         return cls.default_max_trials, cls.default_budget_seconds
+
+    def options_used(self) -> dict[str, Any]:
+        """``self.options`` with each option left to the learner (``None``: "the task preset's") replaced
+        by the value it uses; logged beside the options (params ``used.learner.<name>``)."""
+        return dict(self.options)
 
     @abstractmethod
     def learn(self, interaction: Interaction) -> Iterator[Policy]:

@@ -88,16 +88,18 @@ def legacy_files(names: list[str]) -> list[str]:
             for name in datafile.trial_files(names, prefix).values() if datafile.is_legacy(name)]
 
 
-def migrate_run(client: Any, run_id: str, say: Callable[[str], None] = print) -> list[str]:
-    """Convert every file of run ``run_id`` in an older, pickled format (see the module docstring); returns
-    the artifact names written. **Runs code from those files**: only on the user's explicit request."""
+def migrate_run(store: Any, run_id: str, say: Callable[[str], None] = print) -> list[str]:
+    """Convert every file of run ``run_id`` of ``store`` (a :class:`harness.store.Store`) in an older,
+    pickled format (see the module docstring); returns the artifact names written. **Runs code from
+    those files**: only on the user's explicit request."""
     from harness.discovery import load_learner, load_task
     from harness.testrun import task_options
 
-    params = client.get_run(run_id).data.params
-    names = [a.path for folder in ("checkpoints", "policies") for a in client.list_artifacts(run_id, folder)]
-    models = [a.path for top in client.list_artifacts(run_id) if top.is_dir and top.path.startswith("trial")
-              for a in client.list_artifacts(run_id, top.path) if a.path.endswith(".pt")]
+    run = store.run(run_id)
+    params = run.params
+    names = [a.path for folder in ("checkpoints", "policies") for a in run.artifacts(folder)]
+    models = [a.path for top in run.artifacts() if top.is_dir and top.path.startswith("trial")
+              for a in run.artifacts(top.path) if a.path.endswith(".pt")]
     written: list[str] = []
     with tempfile.TemporaryDirectory(prefix="harness-migrate-") as tmp:
         work = Path(tmp)
@@ -105,7 +107,7 @@ def migrate_run(client: Any, run_id: str, say: Callable[[str], None] = print) ->
             (work / sub).mkdir()
         spec = None
         for name in legacy_files(names):
-            local = Path(client.download_artifacts(run_id, name, str(work / "old")))
+            local = run.copy(name, work / "old" / Path(name).name)
             folder = str(Path(name).parent)
             if folder == "checkpoints":
                 checkpoint = read_legacy_checkpoint(local)
@@ -116,25 +118,24 @@ def migrate_run(client: Any, run_id: str, say: Callable[[str], None] = print) ->
                     spec = load_task(params["task"])(**task_options(params)).spec
                 policy = learner_cls.read_legacy_policy(local, spec)
                 path = learner_cls.save_policy(policy, work / "new" / Path(name).stem)
-            client.log_artifact(run_id, str(path), folder)
+            store.log_artifact(run_id, path, folder)
             written.append(f"{folder}/{path.name}")
             say(f"run {run_id}: {name} -> {written[-1]}")
         for name in models:
-            local = Path(client.download_artifacts(run_id, name, str(work / "models")))
+            local = run.copy(name, work / "models" / Path(name).name)
             if convert_model_file(local):
-                client.log_artifact(run_id, str(local), str(Path(name).parent))
+                store.log_artifact(run_id, local, str(Path(name).parent))
                 written.append(name)
                 say(f"run {run_id}: {name} rewritten as tensors and plain values")
+    run.close()
     return written
 
 
-def runs_with_legacy_files(client: Any) -> list[str]:
+def runs_with_legacy_files(store: Any) -> list[str]:
     """The ids of the store's runs that have a checkpoint or policy in an older format not converted yet."""
     found = []
-    for experiment in client.search_experiments():
-        for run in client.search_runs([experiment.experiment_id], max_results=50_000):
-            run_id = run.info.run_id
-            names = [a.path for folder in ("checkpoints", "policies") for a in client.list_artifacts(run_id, folder)]
-            if legacy_files(names):
-                found.append(run_id)
+    for run in store.search():
+        names = [a.path for folder in ("checkpoints", "policies") for a in run.artifacts(folder)]
+        if legacy_files(names):
+            found.append(run.run_id)
     return found

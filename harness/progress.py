@@ -7,6 +7,8 @@ from typing import Any, Protocol
 from rich.console import Console
 from rich.progress import BarColumn, Progress, TextColumn, TimeElapsedColumn
 
+from harness.learner_logs import EVALUATION, Logs
+
 
 class ProgressReporter(Protocol):
     def start(self, title: str, total: float | None, unit: str) -> None: ...
@@ -29,20 +31,19 @@ class SilentProgress:
         pass
 
 
-def format_record(record: dict[str, Any], previous_wall: float | None = None) -> str:
+def format_record(record: dict[str, Any], previous_wall: float | None = None, logs: Logs = Logs()) -> str:
     """``trial 3/10 | 12.0 s interaction | success 30% | eval cost 31.20 | J 25.1 | wall 42 s (trial 35 s: GP 3 s, policy 30 s, eval 2 s)``:
-    the wall time since the run started, this trial's (since ``previous_wall``, the wall time at the
-    last hand-over, when given) and where it went, as far as the learner and the runner log it
-    (``model_train_seconds``, ``policy_opt_seconds``, ``eval_seconds``)."""
+    the metrics the learner shows (``logs.shown``, e.g. PILCO's J), the wall time since the run started,
+    this trial's (since ``previous_wall``, the wall time at the last hand-over, when given) and where it
+    went, as far as the learner (``logs.timings``) and the runner (the evaluation) log it."""
     parts = [f"trial {record['trial']}" + (f"/{record['max_trials']}" if record.get("max_trials") else "")]
     parts.append(f"{record['interaction_seconds']:.1f} s interaction")
     parts.append(f"success {100 * record['eval_success_rate']:.0f}%")
     parts.append(f"eval cost {record['eval_cost']:.2f}")
-    for key, label in (("J_after", "J"), ("J_sampled", "J sampled"), ("predicted_cost", "predicted")):
+    for key, label in logs.shown:
         if key in record:
             parts.append(f"{label} {record[key]:.2f}")
-    split = [f"{label} {record[key]:.0f} s" for key, label in
-             (("model_train_seconds", "GP"), ("policy_opt_seconds", "policy"), ("eval_seconds", "eval")) if key in record]
+    split = [f"{t.short} {record[t.metric]:.0f} s" for t in (*logs.timings, EVALUATION) if t.metric in record]
     if previous_wall is not None:
         split.insert(0, f"trial {record['wall_seconds'] - previous_wall:.0f} s" + (":" if split else ""))
         detail = split[0] + (" " + ", ".join(split[1:]) if len(split) > 1 else "")
@@ -53,10 +54,12 @@ def format_record(record: dict[str, Any], previous_wall: float | None = None) ->
 
 
 class RichProgress:
-    """A rich progress bar (total = trials or budget seconds) and a printed line per hand-over."""
+    """A rich progress bar (total = trials or budget seconds) and a printed line per hand-over (with
+    what the learner's ``logs`` declare)."""
 
-    def __init__(self, console: Console | None = None) -> None:
+    def __init__(self, console: Console | None = None, logs: Logs = Logs()) -> None:
         self.console = console or Console(stderr=True)
+        self.logs = logs
         self._progress: Progress | None = None
         self._task = None
         self._last_wall: float | None = None
@@ -75,7 +78,7 @@ class RichProgress:
 
     def update(self, record: dict[str, Any], completed: float) -> None:
         assert self._progress is not None
-        self._progress.console.print(format_record(record, self._last_wall), soft_wrap=True)
+        self._progress.console.print(format_record(record, self._last_wall, self.logs), soft_wrap=True)
         self._last_wall = record.get("wall_seconds")
         self._progress.update(self._task, completed=completed)
 

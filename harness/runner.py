@@ -39,6 +39,7 @@ from harness.learner import POLICY_PREFIX, Learner
 from harness.progress import ProgressReporter, SilentProgress
 from harness.provenance import git_sha, package_versions
 from harness.seeding import derive_seeds, seed_everything
+from harness.store import layout
 from harness.task import Episode, Task
 from harness.tracking import MemoryTracker, Tracker
 
@@ -141,6 +142,22 @@ def run_params(prep: Prepared) -> dict[str, Any]:
     params.update({f"learner.{k}": v for k, v in prep.learner_options.items()})
     params.update({f"version.{k}": v for k, v in package_versions().items()})
     return params
+
+
+def used_option_params(learner: Learner) -> dict[str, Any]:
+    """``used.learner.<k>``: the value the learner uses for each option whose logged value is not it
+    (left unset, ``None``: "the task preset's"), so that the store shows what ran."""
+    return {f"{layout.USED_PREFIX}learner.{k}": v for k, v in learner.options_used().items() if learner.options.get(k) != v}
+
+
+def run_tags(config: RunConfig, params: Mapping[str, Any]) -> dict[str, str]:
+    """The run's tags at its start: learner, task, seed, its configuration's hash and label (the
+    report's, :mod:`harness.configuration`)."""
+    from harness.configuration import bench_group_of, config_label
+
+    logged = {k: str(v) for k, v in params.items()}
+    return {layout.LEARNER_TAG: config.learner, layout.TASK_TAG: config.task, layout.SEED_TAG: str(config.seed),
+            layout.CONFIG_HASH_TAG: bench_group_of(logged)[1], layout.CONFIG_LABEL_TAG: config_label(logged)}
 
 
 def save_episodes(episodes: tuple[Episode, ...] | list[Episode], path: Path) -> Path:
@@ -256,11 +273,14 @@ def run(
             tracker.finish("FAILED")
             raise CheckpointError(f"run {resume_run_id} was made with other settings ({mismatch}); resume it with the same command")
     else:
+        from harness.configuration import settings_of
+
+        params = run_params(prep) | used_option_params(learner)
         tracker.start(
-            experiment=config.task,
-            run_name=f"{config.learner}-{config.task}-s{config.seed}",
-            params=run_params(prep),
-            tags={"learner": config.learner, "task": config.task, "seed": str(config.seed)},
+            experiment=layout.task_experiment(config.task),
+            run_name=layout.run_name(config.learner, config.task, config.seed, settings_of({k: str(v) for k, v in params.items()})),
+            params=params,
+            tags=run_tags(config, params),
         )
 
     interaction = Interaction(prep.task.make_env(), spec, budget_seconds=prep.budget_seconds, seed=seeds["interaction"])
@@ -356,7 +376,7 @@ def run(
         )
         try:
             with held_interrupts():  # a second Ctrl-C must not cut the run's final records short
-                _finish(tracker, run_result, interaction, workdir, status)
+                _finish(tracker, run_result, interaction, workdir, status, prep.learner_cls.supports_resume, failure)
         except TrackingError:
             if failure is None:
                 raise  # else the run's own error is the one to see (a store that refuses the end refused the trial first)
@@ -407,34 +427,58 @@ def _log_trial_artifacts(tracker: Tracker, learner: Learner, policy: Any, intera
     learner.artifacts = []
 
 
-def _finish(tracker: Tracker, result: RunResult, interaction: Interaction, workdir: Path, status: str) -> None:
-    """Final metrics, tags, episode data and status; best effort so nothing logged is lost."""
+def _finish(tracker: Tracker, result: RunResult, interaction: Interaction, workdir: Path, status: str,
+            resumable: bool = False, failure: BaseException | None = None) -> None:
+    """Final metrics, tags, episode data and status; best effort so nothing logged is lost. A run
+    stopped before its limit (KILLED) is tagged resumable (its learner checkpoints and it stored a
+    trial) or not, and a stopped or failed run says so, and what to do, in its description."""
     try:
+        total = layout.TOTAL_SUFFIX
         final = {
-            "solved": float(result.solved),
-            "interaction_seconds_total": result.interaction_seconds,
-            "interaction_episodes_total": float(result.interaction_episodes),
-            "wall_seconds_total": result.wall_seconds,
+            layout.SOLVED: float(result.solved),
+            layout.INTERACTION_SECONDS + total: result.interaction_seconds,
+            layout.INTERACTION_EPISODES + total: float(result.interaction_episodes),
+            layout.WALL_SECONDS + total: result.wall_seconds,
         }
         if result.solved:
-            final["interaction_time_to_success"] = result.interaction_time_to_success
-            final["trials_to_success"] = float(result.trials_to_success)
+            final[layout.TIME_TO_SUCCESS] = result.interaction_time_to_success
+            final[layout.TRIALS_TO_SUCCESS] = float(result.trials_to_success)
         tracker.log_metrics(final, step=result.trials)
-        tracker.set_tags(
-            {
-                "solved": str(result.solved).lower(),
-                "stop_reason": result.stop_reason,
-                "interaction_time_to_success": "" if not result.solved else f"{result.interaction_time_to_success:.6g}",
-                "trials_to_success": "" if not result.solved else str(result.trials_to_success),
-            }
-        )
+        tags = {
+            layout.SOLVED_TAG: str(result.solved).lower(),
+            layout.STOP_REASON_TAG: result.stop_reason,
+            layout.TIME_TO_SUCCESS: "" if not result.solved else f"{result.interaction_time_to_success:.6g}",
+            layout.TRIALS_TO_SUCCESS: "" if not result.solved else str(result.trials_to_success),
+        }
+        can_resume = status == "KILLED" and resumable and result.trials > 0
+        tags[layout.RESUMABLE_TAG] = str(can_resume).lower()
+        tags[layout.NOTE_TAG] = end_note(result, status, can_resume, failure)
+        tracker.set_tags(tags)
         if interaction.episodes:
-            tracker.log_artifact(save_episodes(interaction.episodes, workdir / "interaction_episodes.npz"), "episodes")
-        summary = workdir / "result.json"
+            episodes = Path(layout.EPISODES)
+            tracker.log_artifact(save_episodes(interaction.episodes, workdir / episodes.name), str(episodes.parent))
+        summary = workdir / layout.RESULT
         summary.write_text(json.dumps({k: v for k, v in asdict(result).items() if k != "history"}, indent=2))
         tracker.log_artifact(summary)
     finally:
         tracker.finish(status)  # type: ignore[arg-type]
+
+
+def end_note(result: RunResult, status: str, resumable: bool, failure: BaseException | None = None) -> str:
+    """How the run (segment) ended, for its description in the MLflow UI (markdown): solved or not, or
+    stopped before its limit and whether it is resumable, or failed and why."""
+    reached = f"{result.interaction_seconds:g} s of interaction, {result.trials} trials"
+    if status == "FINISHED":
+        if result.solved:
+            return f"**Solved** after {result.interaction_time_to_success:g} s of interaction ({result.trials_to_success} episodes, {result.trials} trials)."
+        return f"**Not solved** ({result.stop_reason}) after {reached}: counted as unsolved (+inf) by the report."
+    if status == "KILLED":
+        then = (f"**Resumable**: the same command plus `--resume {result.run_id}` (a sweep cell: the same sweep command) "
+                "continues it from its last checkpoint." if resumable else "Not resumable (no checkpoint): the same command starts it again.")
+        return f"**Stopped before its limit** after {reached}, unsolved so far: in no statistic of the report. {then}"
+    error = f"{type(failure).__name__}: {failure}".splitlines()[0][:500] if failure is not None else "an error"
+    return (f"**Failed** after {reached}: {error}. Counted as unsolved by the report; the same command runs it again "
+            "(a sweep: the same sweep command).")
 
 
 def route_options(learner: str, task: str, pairs: list[tuple[str, Any]]) -> tuple[dict[str, Any], dict[str, Any]]:

@@ -16,11 +16,9 @@ from pathlib import Path
 
 import numpy as np
 
-from harness.datafile import LegacyFormatError, is_legacy, legacy_message, trial_files
+from harness.datafile import LegacyFormatError, is_legacy, legacy_message
 from harness.discovery import load_learner, load_task
-from harness.errors import CheckpointError
 from harness.evaluation import Evaluator
-from harness.learner import POLICY_PREFIX
 
 
 @dataclass
@@ -41,18 +39,6 @@ class PolicyTestReport:
 def task_options(params: dict[str, str]) -> dict[str, str]:
     """The task variant options a run recorded (its ``task.*`` params, unset ones left out)."""
     return {k[len("task."):]: v for k, v in params.items() if k.startswith("task.") and v != "None"}
-
-
-def _latest_policy(client, run_id: str, trial: int | None) -> str:
-    """The artifact name of the run's last (or ``trial``'s) policy; a trial's data-format file over an older one."""
-    files = trial_files((a.path for a in client.list_artifacts(run_id, "policies")), POLICY_PREFIX)
-    if not files:
-        raise CheckpointError(f"run {run_id} has no saved policy (no artifacts under 'policies/')")
-    if trial is None:
-        return files[max(files)]
-    if trial not in files:
-        raise CheckpointError(f"run {run_id} has no policy of trial {trial}; it has {', '.join(Path(f).name for f in files.values())}")
-    return files[trial]
 
 
 def plot_distance_histogram(distances: np.ndarray, threshold: float | None, title: str, path: Path) -> Path:
@@ -84,20 +70,18 @@ def evaluate_saved_policy(
     trial: int | None = None,
 ) -> PolicyTestReport:
     """Run ``episodes`` test episodes of the run's last (or ``trial``'s) policy; log and return the outcome."""
-    from harness.tracking import get_run, open_client, resolve_tracking_uri
+    from harness.store import Store, layout
 
-    uri = resolve_tracking_uri(tracking_uri)
-    client = open_client(uri)
-    run = get_run(client, run_id, uri)
-    params = run.data.params
+    store = Store(tracking_uri)
+    run = store.run(run_id)
+    params = run.params
     task = load_task(params["task"])(**task_options(params))
-    artifact = _latest_policy(client, run_id, trial)
+    artifact = run.policy(trial)
     out_dir = Path(out_dir) if out_dir is not None else Path(tempfile.mkdtemp(prefix="harness-eval-"))
     out_dir.mkdir(parents=True, exist_ok=True)
     if is_legacy(artifact):
         raise LegacyFormatError(legacy_message(Path(artifact).name, "policy", run_id))
-    local = Path(client.download_artifacts(run_id, artifact, str(out_dir)))
-    policy = load_learner(params["learner"]).load_policy(local, task.spec)
+    policy = load_learner(params["learner"]).load_policy(run.file(artifact), task.spec)
 
     evaluator = Evaluator(task, n_episodes=episodes, seed=seed)
     try:
@@ -110,7 +94,7 @@ def evaluate_saved_policy(
     if np.isfinite(distances).any():
         histogram = plot_distance_histogram(
             distances, threshold, f"{params['learner']} on {params['task']}: {episodes} test episodes, "
-            f"success {100 * result.success_rate:.1f}%", out_dir / "test_final_distance.png",
+            f"success {100 * result.success_rate:.1f}%", out_dir / layout.TEST_HISTOGRAM,
         )
     summary = {
         "run_id": run_id, "task": params["task"], "learner": params["learner"], "policy": artifact,
@@ -120,9 +104,8 @@ def evaluate_saved_policy(
     summary_path = out_dir / "test_summary.json"
     summary_path.write_text(json.dumps(summary, indent=2))
     np.save(out_dir / "test_final_distances.npy", distances)
-    client.log_metric(run_id, "test_success_rate", result.success_rate)
-    client.log_metric(run_id, "test_episodes", float(episodes))
+    store.log_metrics(run_id, {layout.TEST_SUCCESS_RATE: result.success_rate, layout.TEST_EPISODES: float(episodes)})
     for path in (summary_path, out_dir / "test_final_distances.npy", histogram):
         if path is not None:
-            client.log_artifact(run_id, str(path), "test")
+            store.log_artifact(run_id, path, layout.TEST)
     return PolicyTestReport(run_id, params["task"], artifact, episodes, result.success_rate, distances, result.mean_cost, histogram, summary_path)

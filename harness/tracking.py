@@ -1,9 +1,7 @@
-"""Experiment tracking: MLflow (imported lazily: ``import mlflow`` costs ~2.5 s) or in memory.
+"""Writing a run's records: to MLflow (imported lazily: ``import mlflow`` costs ~2.5 s) or in memory.
 
-Default store, no server needed: a SQLite database ``mlflow.db`` in the working directory with
-artifacts in ``./mlruns`` beside it. Override with ``--tracking-uri`` or ``MLFLOW_TRACKING_URI``
-(e.g. ``http://127.0.0.1:5000`` for a shared ``mlflow server``). One experiment per task, one
-run per (learner, task, seed). Browse with::
+The runner hands a :class:`Tracker` its params, per-trial metrics, files and end; where they go in
+the store (experiment per task, names, tags) is :mod:`harness.store.layout`. Browse with::
 
     mlflow ui --backend-store-uri sqlite:///mlflow.db
 """
@@ -11,28 +9,19 @@ run per (learner, task, seed). Browse with::
 from __future__ import annotations
 
 import contextlib
-import logging
 import math
-import os
 from collections.abc import Mapping
 from pathlib import Path
 from typing import Any, Literal, Protocol
 
 from harness.errors import TrackingError
 from harness.provenance import PROCESS_TAG, process_token
+from harness.store.connection import default_tracking_uri, ensure_experiment, get_run, open_client, resolve_tracking_uri
+
+__all__ = ["MemoryTracker", "MlflowTracker", "Tracker", "default_tracking_uri", "ensure_experiment", "get_run", "open_client",
+           "refused_write_message", "resolve_tracking_uri"]
 
 RunStatus = Literal["FINISHED", "FAILED", "KILLED"]
-
-
-def default_tracking_uri(directory: Path | None = None) -> str:
-    """``sqlite:///<abs dir>/mlflow.db`` (``directory`` defaults to the working directory)."""
-    path = (directory or Path.cwd()).resolve() / "mlflow.db"
-    return f"sqlite:///{path}"
-
-
-def resolve_tracking_uri(uri: str | None) -> str:
-    """Explicit ``uri`` > ``MLFLOW_TRACKING_URI`` > the local SQLite default."""
-    return uri or os.environ.get("MLFLOW_TRACKING_URI") or default_tracking_uri()
 
 
 class Tracker(Protocol):
@@ -220,7 +209,10 @@ class MlflowTracker:
 
     def resume(self, run_id: str) -> None:
         """Continue logging into the existing run ``run_id`` (marked RUNNING again)."""
-        get_run(self.client, run_id, self.tracking_uri)
+        from harness.store.connection import check_located
+
+        run = get_run(self.client, run_id, self.tracking_uri)
+        check_located(self.tracking_uri, run.info.artifact_uri, f"run {run_id}")
         self.run_id = run_id
         self.client.update_run(run_id, status="RUNNING")
         self.set_tags({PROCESS_TAG: process_token()})
@@ -238,18 +230,11 @@ class MlflowTracker:
         """The steps at which metric ``key`` of the run is in the store."""
         return {m.step for m in self.client.get_metric_history(self.run_id, key)}
 
-    def find_resumable(self, experiment: str, learner: str, seed: int) -> str | None:
-        """The newest unfinished (RUNNING, FAILED or KILLED) run of ``learner`` with ``seed``."""
-        found = self.client.get_experiment_by_name(experiment)
-        if found is None:
-            return None
-        runs = self.client.search_runs(
-            [found.experiment_id],
-            filter_string=f"params.learner = '{learner}' AND params.seed = '{seed}' AND attributes.status != 'FINISHED'",
-            order_by=["attributes.start_time DESC"],
-            max_results=1,
-        )
-        return runs[0].info.run_id if runs else None
+    def find_resumable(self, task: str, learner: str, seed: int) -> str | None:
+        """The newest unfinished (RUNNING, FAILED or KILLED) `harness bench` run of ``learner`` on ``task`` with ``seed``."""
+        from harness.store import Store
+
+        return Store(self.tracking_uri, self.client).unfinished_bench_run(task, learner, seed)
 
 
 def refused_write_message(tracking_uri: str, run_id: str | None, what: str, exc: Exception) -> str:
@@ -265,97 +250,3 @@ def refused_write_message(tracking_uri: str, run_id: str | None, what: str, exc:
     return (f"the tracking store {tracking_uri} refused to {what} for run {run_id} ({type(exc).__name__}: {cause}).{hint} "
             f"Once the store takes writes again, continue with the same command plus --resume {run_id} "
             "(a sweep: re-run it); trials whose checkpoints were stored are not run again.")
-
-
-def quiet_mlflow_logging() -> None:
-    """Silence MLflow/alembic INFO chatter ("Creating initial MLflow database tables...") and MLflow's
-    download bar per artifact (a resumed run's checkpoint, each plot a report or script copies);
-    ``MLFLOW_ENABLE_ARTIFACTS_PROGRESS_BAR=true`` in the environment brings the bars back."""
-    os.environ.setdefault("MLFLOW_ENABLE_ARTIFACTS_PROGRESS_BAR", "false")
-    for name in ("alembic", "alembic.runtime.migration", "mlflow"):
-        logging.getLogger(name).setLevel(logging.WARNING)
-    # it logs each refused write with its traceback (twice, with its retry) before raising it; the
-    # harness reports the error once, as a TrackingError (the traceback with --debug)
-    logging.getLogger("mlflow.store.db.utils").setLevel(logging.CRITICAL)
-
-
-@contextlib.contextmanager
-def _store_lock(tracking_uri: str):
-    """Serialise the opening of a local SQLite store across processes.
-
-    Two processes creating a fresh ``mlflow.db`` at once race in MLflow's schema migration
-    ("table alembic_version already exists"); an exclusive ``flock`` on ``<db>.lock`` while the
-    store is opened (and, if new, created) makes the second wait for the first.
-    """
-    if not tracking_uri.startswith("sqlite:///"):
-        yield
-        return
-    import fcntl
-
-    lock_path = Path(tracking_uri[len("sqlite:///"):] + ".lock")
-    with open(lock_path, "a") as fh:
-        fcntl.flock(fh, fcntl.LOCK_EX)
-        try:
-            yield
-        finally:
-            fcntl.flock(fh, fcntl.LOCK_UN)
-
-
-def open_client(tracking_uri: str):
-    """An ``MlflowClient`` for ``tracking_uri``; a :class:`TrackingError` with the fix if it fails."""
-    quiet_mlflow_logging()
-    if tracking_uri.startswith("sqlite:///"):
-        db = Path(tracking_uri[len("sqlite:///"):])
-        if not db.parent.exists() or not os.access(db.parent, os.W_OK):
-            raise TrackingError(
-                f"tracking store directory {db.parent} does not exist or is not writable; "
-                "pass --tracking-uri sqlite:////a/writable/path/mlflow.db"
-            )
-    try:
-        import warnings
-
-        with warnings.catch_warnings(), _store_lock(tracking_uri):
-            warnings.simplefilter("ignore")
-            from mlflow.tracking import MlflowClient
-
-            client = MlflowClient(tracking_uri=tracking_uri)
-            client.search_experiments(max_results=1)  # opens (and if new, creates) the store
-    except TrackingError:
-        raise
-    except Exception as exc:
-        raise TrackingError(
-            f"cannot open the tracking store {tracking_uri} ({type(exc).__name__}: {str(exc).splitlines()[0] if str(exc) else ''}); "
-            "check the URI, that the server is running, or pass --tracking-uri"
-        ) from exc
-    return client
-
-
-def get_run(client, run_id: str, tracking_uri: str):
-    """The MLflow run ``run_id`` of ``client``'s store; a :class:`TrackingError` naming the id and
-    the store if there is no such run."""
-    try:
-        return client.get_run(run_id)
-    except Exception as exc:
-        raise TrackingError(f"no run {run_id!r} in {tracking_uri}; check the id (`mlflow ui --backend-store-uri {tracking_uri}` lists runs)") from exc
-
-
-def artifact_location_for(tracking_uri: str, experiment: str) -> str | None:
-    """For a local SQLite store: ``<db dir>/mlruns/<experiment>`` (not the current directory)."""
-    if tracking_uri.startswith("sqlite:///"):
-        db = Path(tracking_uri[len("sqlite:///"):])
-        return (db.parent / "mlruns" / experiment).resolve().as_uri()
-    return None
-
-
-def ensure_experiment(client, name: str, tracking_uri: str) -> str:
-    """The id of experiment ``name``, created if missing (idempotent under a creation race)."""
-    found = client.get_experiment_by_name(name)
-    if found is not None:
-        return found.experiment_id
-    try:
-        return client.create_experiment(name, artifact_location=artifact_location_for(tracking_uri, name))
-    except Exception:
-        found = client.get_experiment_by_name(name)  # another process created it first
-        if found is None:
-            raise
-        return found.experiment_id

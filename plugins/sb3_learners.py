@@ -278,6 +278,11 @@ class SB3Learner(Learner):
         value = self.options.get("eval_every_steps")
         return int(value) if value is not None else 5 * self.spec.horizon
 
+    def options_used(self) -> dict[str, Any]:
+        """The options with the task preset's hyperparameters where they were left unset."""
+        hp = self.hyperparameters()
+        return {k: hp.get(k, v) if v is None else v for k, v in self.options.items()}
+
     @abstractmethod
     def _algorithm_kwargs(self, hp: dict[str, Any]) -> dict[str, Any]:
         """SB3 constructor keyword arguments (besides policy, env, seed, device) from ``hp``."""

@@ -32,6 +32,7 @@ import torch
 from harness.errors import OptionError
 from harness.interaction import Interaction
 from harness.learner import Learner, Policy
+from harness.learner_logs import Logs, Timing
 from harness.options import Option
 from harness.task import TaskSpec
 from harness.threads import run_threads
@@ -58,6 +59,12 @@ class McPilco(Learner):
     name = "mc-pilco"
     description = "MC-PILCO: PILCO's GP model, policy cost by particles with reparameterised gradients (Amadio et al., T-RO 2022)"
     supports_resume = True
+    logs = Logs(
+        shown=(("J_after", "J"),),
+        timings=(Timing("model_train_seconds", "model_training", "GP training", "GP"),
+                 Timing("policy_opt_seconds", "policy_search", "policy search", "policy")),
+        policy_size="policy_parameters",
+    )
     options = (
         Option("controller", str, None, "policy: rbf or linear (default: the PILCO task preset)", choices=(None, "rbf", "linear")),
         Option("num_centres", int, None, "RBF centres (default: the PILCO task preset)", low=1),

@@ -36,6 +36,7 @@ import torch
 from harness.errors import NumericalError, OptionError
 from harness.interaction import Interaction
 from harness.learner import Learner, Policy
+from harness.learner_logs import Logs, Timing, TrialFigure
 from harness.options import Option
 from harness.task import Episode, TaskSpec
 from harness.threads import run_threads, torch_threads
@@ -246,6 +247,13 @@ class Pilco(Learner):
     #: the ablation switch: drop the GP's model-uncertainty term in planning
     mean_only: ClassVar[bool] = False
     supports_resume = True
+    logs = Logs(
+        shown=(("J_after", "J"), ("J_sampled", "J sampled"), ("predicted_cost", "predicted")),
+        timings=(Timing("model_train_seconds", "model_training", "GP training", "GP"),
+                 Timing("policy_opt_seconds", "policy_search", "policy search", "policy")),
+        policy_size="policy_parameters",
+        trial_figure=TrialFigure("prediction_trial*.png", "prediction"),
+    )
     options = (
         Option("controller", str, None, "policy: rbf or linear (default: task preset)", choices=(None, "rbf", "linear")),
         Option("num_centres", int, None, "RBF centres (default: task preset)", low=1),
@@ -303,6 +311,17 @@ class Pilco(Learner):
         except ValueError as exc:
             raise OptionError(f"kernel={o['kernel']}: {exc} (or --set kernel=torch)") from None
         self._state: dict[str, Any] = {}  # see state_dict(); filled at every hand-over
+
+    def options_used(self) -> dict[str, Any]:
+        """The options with the task preset's values (and the harness's thread count) where they were left unset."""
+        used = dict(self.options)
+        preset = asdict(self.preset)
+        used.update({k: preset[k] for k in ("controller", "num_centres", "initial_rollouts", "random_scale", "sparse_threshold",
+                                             "policy_max_iterations", "policy_max_evaluations")})
+        used.update(planning_horizon=self.horizon, cost_width=self.cost_width or self.spec.cost.width, num_pseudo=self.num_pseudo,
+                    gp_hyper_subset=self.options["gp_hyper_subset"] or self.preset.sparse_threshold,
+                    threads=self.options["threads"] or run_threads(), kernel=self.kernel)
+        return used
 
     @classmethod
     def default_limits(cls, spec: TaskSpec) -> tuple[int | None, float | None]:

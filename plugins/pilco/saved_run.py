@@ -16,14 +16,14 @@ The benchmarks that re-examine a run (``pilco_prediction_check``, ``gp_budget_ch
     with SavedPilcoRun(run_id, tracking_uri) as run:
         model, policy = run.model(15), run.policy(15)
 
-Files are downloaded into a temporary folder that is removed when the ``with`` block ends.
+A local store's files are read where they are (wherever the store was copied to); a server's are
+downloaded into a temporary folder that is removed when the ``with`` block ends.
 """
 
 from __future__ import annotations
 
 import json
 import pickle
-import tempfile
 from functools import cached_property
 from pathlib import Path
 from typing import Any
@@ -31,20 +31,20 @@ from typing import Any
 import torch
 
 from harness.discovery import load_learner, load_task
-from harness.datafile import LegacyFormatError, is_legacy, legacy_message, trial_files
+from harness.datafile import LegacyFormatError, is_legacy, legacy_message
 from harness.errors import CheckpointError
-from harness.learner import POLICY_PREFIX
-from harness.runner import load_episodes
-from harness.testrun import task_options
-from harness.tracking import get_run, open_client, resolve_tracking_uri
+from harness.store import Store
+from harness.store.layout import trial_folder
 from harness.task import Episode
+from harness.testrun import task_options
 from plugins.pilco.gp import GPModel
 from plugins.pilco.learner import Preset
 from plugins.pilco.propagate import StateLayout
 
 
 class SavedPilcoRun:
-    """One PILCO (or ``pilco-mean``) run of a tracking store, opened for reading.
+    """One PILCO (or ``pilco-mean``) run of a tracking store, opened for reading (through
+    :class:`harness.store.RunReader`).
 
     Args:
         run_id: the MLflow run id.
@@ -58,9 +58,8 @@ class SavedPilcoRun:
 
     def __init__(self, run_id: str, tracking_uri: str | None = None, task: str | None = None) -> None:
         self.run_id = run_id
-        uri = resolve_tracking_uri(tracking_uri)
-        self.client = open_client(uri)
-        self.params: dict[str, str] = dict(get_run(self.client, run_id, uri).data.params)
+        self.run = Store(tracking_uri).run(run_id)
+        self.params: dict[str, str] = self.run.params
         learner, task_name = self.params.get("learner", ""), self.params.get("task")
         if not learner.startswith("pilco"):
             raise CheckpointError(f"run {run_id} is a {learner or 'non-harness'!r} run; this needs a PILCO run")
@@ -68,7 +67,6 @@ class SavedPilcoRun:
             raise CheckpointError(f"run {run_id} is PILCO on {task_name!r}; this needs a run on {task!r}")
         self.learner_cls = load_learner(learner)
         self.task = load_task(task_name)(**task_options(self.params))
-        self._tmp = tempfile.TemporaryDirectory(prefix="pilco-run-")
         self._saved_models: dict[int, dict[str, Any]] = {}
 
     def __enter__(self) -> SavedPilcoRun:
@@ -78,23 +76,17 @@ class SavedPilcoRun:
         self.close()
 
     def close(self) -> None:
-        """Remove the downloaded files."""
-        self._tmp.cleanup()
+        """Remove the files downloaded from a server (a local store's files are read in place)."""
+        self.run.close()
 
     def file(self, artifact: str) -> Path:
-        """The local copy of one artifact of the run (downloaded once)."""
-        local = Path(self._tmp.name) / artifact
-        if not local.exists():
-            try:
-                return Path(self.client.download_artifacts(self.run_id, artifact, self._tmp.name))
-            except Exception as exc:  # noqa: BLE001 - MLflow raises several types for a missing artifact
-                raise CheckpointError(f"run {self.run_id} has no artifact {artifact!r} ({exc})") from exc
-        return local
+        """A local copy of one artifact of the run."""
+        return self.run.file(artifact)
 
     @cached_property
     def settings(self) -> dict[str, Any]:
         """The learner's resolved settings (``pilco_settings.json``)."""
-        return json.loads(self.file("trial001/pilco_settings.json").read_text())
+        return json.loads(self.file(f"{trial_folder(1)}/pilco_settings.json").read_text())
 
     @property
     def planning_horizon(self) -> int:
@@ -108,21 +100,17 @@ class SavedPilcoRun:
 
     def model_trials(self) -> list[int]:
         """Trials with a saved GP (``trialKKK/`` folders), ascending."""
-        return sorted(int(a.path[len("trial"):]) for a in self.client.list_artifacts(self.run_id)
-                      if a.is_dir and a.path.startswith("trial"))
-
-    def _policy_files(self) -> dict[int, str]:
-        return trial_files((a.path for a in self.client.list_artifacts(self.run_id, "policies")), POLICY_PREFIX)
+        return self.run.trials_with_files()
 
     def policy_trials(self) -> list[int]:
         """Trials with a saved policy, ascending."""
-        return list(self._policy_files())
+        return self.run.policy_trials()
 
     def saved_model(self, trial: int) -> dict[str, Any]:
         """The stored dict of trial ``trial``'s GP: ``gp`` (state dict), ``layout`` (a :class:`StateLayout`),
         ``preset`` (a :class:`Preset`)."""
         if trial not in self._saved_models:
-            artifact = f"trial{trial:03d}/model_trial{trial:03d}.pt"
+            artifact = f"{trial_folder(trial)}/model_trial{trial:03d}.pt"
             try:
                 saved = torch.load(self.file(artifact), weights_only=True)
             except pickle.UnpicklingError:  # objects of other classes than tensors: an older harness's file
@@ -138,17 +126,15 @@ class SavedPilcoRun:
 
     def policy(self, trial: int):
         """The policy handed over at trial ``trial`` (a ``PilcoPolicy``)."""
-        files = self._policy_files()
-        if trial not in files:
-            raise CheckpointError(f"run {self.run_id} has no policy of trial {trial}; it has trials {list(files)}")
-        if is_legacy(files[trial]):
-            raise LegacyFormatError(legacy_message(files[trial], "policy", self.run_id))
-        return self.learner_cls.load_policy(self.file(files[trial]), self.task.spec)
+        artifact = self.run.policy(trial)
+        if is_legacy(artifact):
+            raise LegacyFormatError(legacy_message(artifact, "policy", self.run_id))
+        return self.learner_cls.load_policy(self.file(artifact), self.task.spec)
 
     def episodes(self) -> list[Episode]:
         """Every interaction episode of the run, in the order they happened (random ones first)."""
-        return load_episodes(self.file("episodes/interaction_episodes.npz"))
+        return self.run.episodes()
 
     def metric(self, key: str) -> dict[int, float]:
         """A per-trial metric's history, ``{step: value}``."""
-        return {int(m.step): m.value for m in self.client.get_metric_history(self.run_id, key)}
+        return self.run.history(key)

@@ -111,14 +111,15 @@ def activate(paths: list[str], monkeypatch) -> None:
 
 
 class InlinePool:
-    """Runs each cell in the calling process (``monkeypatch.setattr(sweep, "LocalPool", InlinePool)``):
+    """Runs each cell in the calling process (``monkeypatch.setattr(pools, "LocalPool", InlinePool)``,
+    ``pools`` = :mod:`harness.sweep.pools`):
     the driver and the worker function are the real ones, only the process pool is left out."""
 
     def __init__(self, workers: int) -> None:
         self.workers = 1
 
     def submit(self, job):
-        from harness.sweep import run_cell
+        from harness.sweep.cell import run_cell
 
         future = Future()
         future.set_result(run_cell(job))
@@ -152,43 +153,40 @@ EXPECTED_STEPS = {2: (True, 4.0), 3: (True, 8.0), 4: (False, None)}
 
 
 def children_by_cell(uri: str, result) -> dict[tuple[str, int], list]:
-    """The sweep's child runs by (learner, seed)."""
-    from harness.sweep import child_runs
-    from harness.tracking import open_client
+    """The sweep's child runs (:class:`harness.store.RunReader`) by (learner, seed), over its parents."""
+    from harness.store import Store
 
-    client = open_client(uri)
+    store = Store(uri)
     out: dict[tuple[str, int], list] = {}
-    for run in child_runs(client, result.experiment_id, result.parent_run_id):
-        out.setdefault((run.data.tags["learner"], int(run.data.tags["seed"])), []).append(run)
+    for experiment_id, parent in dict.fromkeys(result.parents.values()):
+        for run in store.children(parent, experiment_id):
+            out.setdefault((run.tags["learner"], int(run.tags["seed"])), []).append(run)
     return out
 
 
 def check_steps_cells(uri: str, result) -> None:
-    """The `sweep-steps` cells of seeds 2-4 ended as EXPECTED_STEPS says, with the sweep's tags."""
+    """The `sweep-steps` cells of seeds 2-4 ended as EXPECTED_STEPS says, with the sweep's tags, in the task's experiment."""
     runs = children_by_cell(uri, result)
     for seed, (solved, time_to_success) in EXPECTED_STEPS.items():
-        (run,) = [r for r in runs[("sweep-steps", seed)] if r.info.status == "FINISHED"]
-        assert run.data.tags["solved"] == str(solved).lower()
-        assert run.data.tags["harness.sweep_id"] == result.sweep_id and run.data.tags["harness.role"] == "cell"
-        assert run.data.params["spec.state_dim"] == "1" and run.data.params["max_trials"] == "2"
+        (run,) = [r for r in runs[("sweep-steps", seed)] if r.status == "FINISHED"]
+        assert run.tags["solved"] == str(solved).lower()
+        assert run.tags["harness.sweep_id"] == result.sweep_id and run.tags["harness.role"] == "cell"
+        assert run.params["spec.state_dim"] == "1" and run.params["max_trials"] == "2"
+        assert run.store.experiments()[run.experiment_id] == "sweep-toy"
+        assert run.name == f"sweep-steps · sweep-toy · s{seed}"
         if solved:
-            assert run.data.metrics["interaction_time_to_success"] == time_to_success
+            assert run.metrics["interaction_time_to_success_seconds"] == time_to_success
         else:
-            assert "interaction_time_to_success" not in run.data.metrics
-            assert run.data.metrics["interaction_seconds_total"] == 8.0
+            assert "interaction_time_to_success_seconds" not in run.metrics
+            assert run.metrics["interaction_seconds_total"] == 8.0
 
 
 def sweep_runs(uri: str, spec, role: str) -> list:
-    """The runs of sweep ``spec`` with ``harness.role`` ``role`` ("sweep": the parent, "cell": its children)."""
-    from harness.sweep import SWEEP_EXPERIMENT
-    from harness.tracking import open_client
+    """The runs (:class:`harness.store.RunReader`) of sweep ``spec`` with ``harness.role`` ``role``
+    ("sweep": its parents, "cell": their children), in any experiment."""
+    from harness.store import Store
 
-    client = open_client(uri)
-    experiment = client.get_experiment_by_name(SWEEP_EXPERIMENT)
-    if experiment is None:
-        return []
-    return client.search_runs([experiment.experiment_id],
-                              f"tags.`harness.sweep_id` = '{spec.sweep_id}' AND tags.`harness.role` = '{role}'")
+    return Store(uri).search(None, f"tags.`harness.sweep_id` = '{spec.sweep_id}' AND tags.`harness.role` = '{role}'")
 
 
 def wait_until_cells_run(uri: str, spec, proc, timeout: float) -> None:
@@ -196,13 +194,10 @@ def wait_until_cells_run(uri: str, spec, proc, timeout: float) -> None:
     output of ``proc`` (a :class:`tests.processes.HarnessProcess`) after ``timeout`` s."""
     import time
 
-    from harness.tracking import open_client
-
-    client = open_client(uri)
     deadline = time.time() + timeout
     while time.time() < deadline:
         cells = sweep_runs(uri, spec, "cell")
-        if len(cells) == len(spec.cells()) and all(client.get_metric_history(r.info.run_id, "interaction_seconds") for r in cells):
+        if len(cells) == len(spec.cells()) and all(r.history("interaction_seconds") for r in cells):
             return
         time.sleep(0.5)
     raise AssertionError(f"the cells did not start in time:\n{proc.output()}")

@@ -86,7 +86,7 @@ def test_bench_writes_an_mlflow_run_that_reads_back(tmp_path, mlflow_uri):
     assert row["params.git_sha"] and row["params.version.torch"]
     assert row["metrics.interaction_seconds"] == pytest.approx(3 * 20 * 0.1)
     assert row["metrics.solved"] == 0.0 and row["tags.solved"] == "false"
-    assert "metrics.interaction_time_to_success" not in runs.columns or runs["metrics.interaction_time_to_success"].isna().all()
+    assert "metrics.interaction_time_to_success_seconds" not in runs.columns or runs["metrics.interaction_time_to_success_seconds"].isna().all()
     client = mlflow.MlflowClient(mlflow_uri)
     history = client.get_metric_history(row["run_id"], "eval_success_rate")
     assert [m.step for m in history] == [1, 2, 3]

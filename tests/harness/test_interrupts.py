@@ -103,8 +103,13 @@ def test_sigusr1_stops_the_run_once_its_trial_is_stored_and_the_resume_loses_not
     assert signal.getsignal(STOP_AFTER_TRIAL) is before  # the run's handler is gone with it
     assert tracker.status == "KILLED" and [s for s, _ in tracker.metrics["eval_cost"]] == [1, 2]
     assert any(name.endswith("ckpt_trial002.ckpt") for name in tracker.list_artifacts("checkpoints"))
+    # the store tells a stopped, resumable run from a failed one: a tag, and the description says how to continue
+    assert tracker.tags["harness.resumable"] == "true" and tracker.tags["stop_reason"] == "killed"
+    assert tracker.tags["mlflow.note.content"].startswith("**Stopped before its limit** after 8 s of interaction, 2 trials")
+    assert f"plus `--resume {tracker.run_id}`" in tracker.tags["mlflow.note.content"]
     resumed = run(config, tracker=tracker, resume_run_id=tracker.run_id)
     assert tracker.status == "FINISHED" and [s for s, _ in tracker.metrics["eval_cost"]] == [1, 2, 3, 4, 5]
+    assert tracker.tags["harness.resumable"] == "false" and tracker.tags["mlflow.note.content"].startswith("**Not solved** (max trials)")
     assert [r["eval_cost"] for r in resumed.history] == [r["eval_cost"] for r in reference.history]
     assert resumed.interaction_seconds == reference.interaction_seconds
 

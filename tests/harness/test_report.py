@@ -13,14 +13,17 @@ import pytest
 from click.testing import CliRunner
 from scipy import stats
 
-from harness import sweep
 from harness.cli import main
 from harness.errors import HarnessError, MissingArtifactsWarning
-from harness.report import (RunRecord, _label, comparison_markdown, comparison_row, copy_prediction_plot, file_slug, read_literature,
-                            representative_run, run_rows, runs_markdown, table1_markdown, table1_rows, variant_labels)
+from harness.report.comparison import comparison_markdown, comparison_row
+from harness.report.from_runs import copy_test_histogram, copy_trial_figure, representative_run
+from harness.report.labels import file_slug, label_runs, variant_labels
+from harness.report.paper import read_literature, table1_markdown, table1_rows
+from harness.report.records import RunRecord, record_from_run
+from harness.report.runs_table import run_rows, runs_markdown
 from harness.statistics import bootstrap_ci, iqm, median, median_bounds, stratified_bootstrap, times_with_failures
-from harness.sweep import SweepSpec, run_sweep
-from harness.tracking import open_client
+from harness.store import RunReader, Store
+from harness.sweep import SweepSpec, pools, run_sweep
 from tests.harness import sweep_site
 
 # ---- statistics ---------------------------------------------------------------------------------
@@ -146,15 +149,24 @@ def test_stopped_runs_are_listed_as_stopped_and_in_no_statistic():
     assert "stopped before its limit (KILLED)" in md
 
 
-def test_a_stale_total_of_an_earlier_run_segment_does_not_hide_later_trials():
+def _fake_run(metrics=None, tags=None, root: Path | None = None, run_id="r", status="KILLED"):
+    """A stored run as the store returns it (an MLflow ``Run``'s fields), its files in ``root``."""
     from types import SimpleNamespace
 
-    from harness.report import record_from_run
+    info = SimpleNamespace(run_id=run_id, experiment_id="1", status=status, start_time=0,
+                           artifact_uri=(root or Path("/nonexistent")).as_uri())
+    data = SimpleNamespace(tags={"learner": "pilco", "task": "cartpole", "seed": "0", **(tags or {})}, metrics=metrics or {}, params={})
+    return SimpleNamespace(info=info, data=data)
 
-    def fake_run(metrics):
-        info = SimpleNamespace(run_id="r", status="KILLED", start_time=0)
-        data = SimpleNamespace(tags={"learner": "pilco", "task": "cartpole", "seed": "0"}, metrics=metrics, params={})
-        return SimpleNamespace(info=info, data=data)
+
+def _reader(run) -> RunReader:
+    from types import SimpleNamespace
+
+    return RunReader(SimpleNamespace(uri="sqlite:////nonexistent/mlflow.db"), run)
+
+
+def test_a_stale_total_of_an_earlier_run_segment_does_not_hide_later_trials():
+    fake_run = lambda metrics: _reader(_fake_run(metrics))  # noqa: E731
 
     # killed at 60 s (totals logged), resumed, then lost at 114 s without logging totals
     stale = fake_run({"interaction_seconds_total": 60.0, "interaction_seconds": 114.0, "wall_seconds_total": 4312.0,
@@ -170,27 +182,41 @@ def test_a_stale_total_of_an_earlier_run_segment_does_not_hide_later_trials():
     assert (stopped.interaction_seconds, stopped.episodes) == (69.0, 23.0)
 
 
+def test_a_run_made_before_the_unit_was_in_the_metric_name_reads_the_same():
+    old = _reader(_fake_run({"interaction_time_to_success": 12.0, "trials_to_success": 3.0}, {"solved": "true"}, status="FINISHED"))
+    new = _reader(_fake_run({"interaction_time_to_success_seconds": 12.0, "trials_to_success": 3.0}, {"solved": "true"}, status="FINISHED"))
+    assert record_from_run(old, "s").time_to_success == record_from_run(new, "s").time_to_success == 12.0
+    # what the learner declares it logs: PILCO's policy size fills Table 1, a learner that declares none has none
+    sized = _reader(_fake_run({"policy_parameters": 305.0}))
+    assert record_from_run(sized, "s").policy_parameters == 305.0
+    sized.tags["learner"] = "random"
+    assert record_from_run(sized, "s").policy_parameters is None
+
+
 def test_wall_time_is_split_per_trial_into_the_logged_parts_and_the_rest():
-    from harness.report import wall_breakdown, walltime_markdown
+    from harness.report.walltime import wall_breakdown, wall_parts, walltime_markdown
 
     # run A: trials of 10, 20, 30 s (cumulative 10, 30, 60); run B: one trial of 40 s, no evaluation timing
     a = {"wall_seconds": {1: 10.0, 2: 30.0, 3: 60.0}, "model_train_seconds": {1: 1.0, 2: 2.0, 3: 3.0},
          "policy_opt_seconds": {1: 5.0, 2: 10.0, 3: 20.0}, "eval_seconds": {1: 1.0, 2: 1.0, 3: 1.0}}
     b = {"wall_seconds": {1: 40.0}, "model_train_seconds": {1: 4.0}, "policy_opt_seconds": {1: 30.0}}
-    row = wall_breakdown([a, b])
+    parts = wall_parts(["pilco", "random", "sac"])  # PILCO declares GP training and policy search; the harness times evaluation
+    assert [p.key for p in parts] == ["model_training", "policy_search", "evaluation"] and [p.key for p in wall_parts(["sac"])] == ["evaluation"]
+    row = wall_breakdown([a, b], parts)
     assert row["policies"] == 4 and row["total_wall_s"] == 100.0
     assert (row["wall_per_trial_median_s"], row["wall_per_trial_min_s"], row["wall_per_trial_max_s"]) == (25.0, 10.0, 40.0)
     assert row["last_trial_wall_median_s"] == 35.0  # median of 30 (A's last) and 40 (B's only)
     assert (row["share_model_training"], row["share_policy_search"], row["share_evaluation"]) == (0.10, 0.65, 0.03)
     assert row["share_other"] == pytest.approx(0.22)
-    none = wall_breakdown([{"wall_seconds": {1: 5.0}}])
+    none = wall_breakdown([{"wall_seconds": {1: 5.0}}], parts)
     assert math.isnan(none["share_policy_search"]) and none["share_other"] == 1.0
-    md = walltime_markdown("cartpole", [{"task": "cartpole", "learner": "pilco", "runs": 2, **row}])
+    md = walltime_markdown("cartpole", [{"task": "cartpole", "learner": "pilco", "runs": 2, **row}], parts)
+    assert "| GP training | policy search | evaluation | other |" in md
     assert "| pilco | 2 | 4 | 25 [10–40] | 35 | 0.03 | 10 % | 65 % | 3 % | 22 % |" in md
 
 
 def test_curves_hold_finished_runs_and_end_stopped_runs_where_they_stopped():
-    from harness.figures import curve_table, hold_on_grid
+    from harness.report.figures import curve_table, hold_on_grid
 
     grid = np.array([1.0, 2.0, 3.0, 4.0])
     held = hold_on_grid(np.array([1.5, 2.5]), np.array([0.1, 0.9]), grid)
@@ -217,26 +243,16 @@ def test_representative_run_is_the_lower_median_solved_run_else_the_longest():
     assert representative_run([]) is None
 
 
-class _Artifact:
-    def __init__(self, path, is_dir=False):
-        self.path, self.is_dir = path, is_dir
+def _stored(tmp_path: Path, record: RunRecord, learner: str = "pilco") -> RunRecord:
+    """``record`` with a stored run whose files are in ``tmp_path / run_id``."""
+    import dataclasses
+
+    run = _fake_run(root=tmp_path / record.run_id, run_id=record.run_id, status=record.status)
+    run.data.tags["learner"] = learner
+    return dataclasses.replace(record, learner=learner, reader=_reader(run))
 
 
-class _ArtifactClient:
-    """The two MLflow client calls the report uses, over a local folder."""
-
-    def __init__(self, root: Path):
-        self.root = root
-
-    def list_artifacts(self, run_id, path=None):
-        base = self.root / run_id / (path or "")
-        return [_Artifact(str(p.relative_to(self.root / run_id)), p.is_dir()) for p in sorted(base.iterdir())]
-
-    def download_artifacts(self, run_id, path, dst):
-        return str(self.root / run_id / path)
-
-
-def test_prediction_plot_of_the_representative_run_is_copied(tmp_path):
+def test_trial_figure_of_the_representative_run_is_copied(tmp_path):
     for run, trials in (("run0", (2, 3)), ("run1", (2, 3, 11))):
         for t in trials:
             (tmp_path / run / f"trial{t:03d}").mkdir(parents=True)
@@ -244,30 +260,30 @@ def test_prediction_plot_of_the_representative_run_is_copied(tmp_path):
         (tmp_path / run / "policies").mkdir()
     out = tmp_path / "out"
     out.mkdir()
-    runs = [_record(0, True, 30.0, 7.0), _record(1, True, 10.0, 3.0)]
-    path = copy_prediction_plot(_ArtifactClient(tmp_path), "cartpole", "pilco", runs, out)
+    runs = [_stored(tmp_path, _record(0, True, 30.0, 7.0)), _stored(tmp_path, _record(1, True, 10.0, 3.0))]
+    path = copy_trial_figure("cartpole", "pilco", runs, out)  # the figure PILCO declares: its prediction plot
     assert path == out / "prediction_cartpole_pilco.png" and path.read_bytes() == b"run1-11"  # lower median; trial 11 > trial 3
     (tmp_path / "run2" / "policies").mkdir(parents=True)  # a run that logs no prediction plots
-    assert copy_prediction_plot(_ArtifactClient(tmp_path), "cartpole", "pilco", [_record(2, True, 5.0, 2.0)], out) is None
+    assert copy_trial_figure("cartpole", "pilco", [_stored(tmp_path, _record(2, True, 5.0, 2.0))], out) is None
+    # a learner that declares no per-trial figure: nothing looked for, nothing said
+    assert copy_trial_figure("cartpole", "random", [_stored(tmp_path, _record(1, True, 10.0, 3.0), "random")], out) is None
     (tmp_path / "run3").mkdir()  # a run whose artifacts are missing: said, not silently skipped
     with pytest.warns(MissingArtifactsWarning, match="cartpole / pilco not written: its representative run run3 has no artifacts"):
-        assert copy_prediction_plot(_ArtifactClient(tmp_path), "cartpole", "pilco", [_record(3, True, 5.0, 2.0)], out) is None
+        assert copy_trial_figure("cartpole", "pilco", [_stored(tmp_path, _record(3, True, 5.0, 2.0))], out) is None
 
 
 def test_test_histogram_of_the_tested_run_is_copied_and_missing_artifacts_are_said(tmp_path):
-    from harness.report import copy_test_histogram
-
     (tmp_path / "run1" / "test").mkdir(parents=True)
     (tmp_path / "run1" / "test" / "test_final_distance.png").write_bytes(b"hist1")
     out = tmp_path / "out"
     out.mkdir()
-    runs = [_record(0, True, 30.0, 7.0), _record(1, True, 10.0, 3.0)]
+    runs = [_stored(tmp_path, _record(0, True, 30.0, 7.0)), _stored(tmp_path, _record(1, True, 10.0, 3.0))]
     tested = [{"run_id": "run1"}]
-    path = copy_test_histogram(_ArtifactClient(tmp_path), "unicycle", "pilco [init=code]", runs, tested, out)
+    path = copy_test_histogram("unicycle", "pilco [init=code]", runs, tested, out)
     assert path == out / "fig4b_unicycle_pilco_init-code.png" and path.read_bytes() == b"hist1"
     (tmp_path / "run0").mkdir()  # tested, but its artifacts are missing
     with pytest.warns(MissingArtifactsWarning, match="test histogram of unicycle / pilco not written: its tested run run0 has no artifacts"):
-        assert copy_test_histogram(_ArtifactClient(tmp_path), "unicycle", "pilco", runs, [{"run_id": "run0"}], out) is None
+        assert copy_test_histogram("unicycle", "pilco", runs, [{"run_id": "run0"}], out) is None
 
 
 def test_table1_measured_beside_the_paper():
@@ -303,7 +319,7 @@ def test_sweeps_of_one_learner_are_told_apart_by_the_settings_they_differ_in():
     records = [rec(0, "s40", base), rec(1, "s40", base),
                rec(0, "s30", base | {"task.horizon": "30", "learner.added_later": "x"}),
                rec(0, "m", base, learner="pilco-mean")]
-    _label(records)
+    label_runs(records)
     assert [r.label for r in records] == ["pilco [horizon=40]", "pilco [horizon=40]", "pilco [horizon=30]", "pilco-mean"]
     # the same settings: the sweep id tells them apart; so does a clash of option names, by the full key
     assert variant_labels("pilco", {"a": base, "b": dict(base)}) == {"a": "pilco@a", "b": "pilco@b"}
@@ -318,12 +334,12 @@ def test_sweeps_of_one_learner_are_told_apart_by_the_settings_they_differ_in():
     assert both == {"a": "pilco [learner.horizon=5, task.horizon=40]", "b": "pilco [learner.horizon=9, task.horizon=30]"}
     # a setting one run of a sweep differs in is not the sweep's: not compared
     mixed = [rec(0, "a", base), rec(1, "a", base | {"task.horizon": "30"}), rec(0, "b", base | {"max_trials": "9"})]
-    _label(mixed)
+    label_runs(mixed)
     assert [r.label for r in mixed] == ["pilco [max_trials=15]", "pilco [max_trials=15]", "pilco [max_trials=9]"]
     # an option one sweep did not record (added after it ran) counts at its default: a sweep with
     # it set otherwise is told apart by it (pilco's gp_fitc_evals defaults to 100)
     later = [rec(0, "old", base), rec(0, "new", base | {"learner.gp_fitc_evals": "300"}), rec(0, "same", base | {"learner.gp_fitc_evals": "100"})]
-    _label(later)
+    label_runs(later)
     assert [r.label for r in later] == ["pilco [gp_fitc_evals=100]@old", "pilco [gp_fitc_evals=300]", "pilco [gp_fitc_evals=100]@same"]
     assert file_slug("pilco [horizon=30, max_trials=9]") == "pilco_horizon-30_max_trials-9" and file_slug("pilco@ab12") == "pilco_ab12"
 
@@ -338,7 +354,8 @@ def test_a_running_run_whose_process_is_gone_is_named_stale():
     import subprocess
 
     from harness.provenance import process_token
-    from harness.report import ReportData, notes_markdown
+    from harness.report.notes import notes_markdown
+    from harness.report.records import ReportData
 
     child = subprocess.Popen(["sleep", "0.01"])
     dead = process_token(child.pid)
@@ -374,7 +391,7 @@ def swept(tmp_path_factory):
     paths = sweep_site.install(tmp_path_factory.mktemp("report-plugins"))
     with pytest.MonkeyPatch.context() as mp:
         sweep_site.activate(paths, mp)
-        mp.setattr(sweep, "LocalPool", sweep_site.InlinePool)
+        mp.setattr(pools, "LocalPool", sweep_site.InlinePool)
         spec = SweepSpec(("sweep-steps", "random", "sweep-boom"), ("sweep-toy",), (2, 3, 4), max_trials=2, eval_episodes=2)
         result = run_sweep(spec, uri)
     return uri, result, paths
@@ -421,13 +438,40 @@ def test_report_regenerates_tables_and_figures_from_mlflow(swept, tmp_path):
     at = {float(r["interaction_s"]): float(r["success_mean"]) for r in curve}
     assert at[4.0] == pytest.approx(1 / 3) and at[8.0] == pytest.approx(2 / 3)
 
-    # the rows of this sweep are logged on its parent run
-    client = open_client(uri)
-    local = client.download_artifacts(result.parent_run_id, "report/comparison.json", str(tmp_path))
-    logged = json.loads(Path(local).read_text())
+    # the comparison in the store: a run per task with the whole table (every learner a row) and the files
+    store = Store(uri)
+    experiment = store.experiment_id("sweep-toy")
+    (comparison,) = store.search([experiment], "tags.`harness.role` = 'comparison'")
+    assert comparison.name == "comparison · sweep-toy" and comparison.status == "FINISHED"
+    logged = json.loads(comparison.file("report/comparison.json").read_text())
     table = {row[logged["columns"].index("learner")]: dict(zip(logged["columns"], row)) for row in logged["data"]}
+    assert set(table) == {"sweep-steps", "random", "sweep-boom"}
     assert table["sweep-steps"]["median_time_to_success_s"] == 8.0 and table["sweep-steps"]["iqm_time_to_success_s"] is None
-    assert {a.path for a in client.list_artifacts(result.parent_run_id, "report")} >= {"report/comparison.json", "report/fig5.png"}
+    assert {a.path for a in comparison.artifacts("report")} >= {"report/comparison.json", "report/comparison_sweep-toy.md",
+                                                                  "report/curves_sweep-toy.png", "report/fig5.png"}
+    assert "| sweep-steps | 2/3 | 8.0 [" in comparison.tags["mlflow.note.content"]
+    # a run per row whose metrics are the row's statistics, unsolved runs counted: the learner that
+    # never solved keeps a row (solved fraction 0, a median only as a lower bound), none is dropped
+    rows = {r.tags["harness.report_row"]: r for r in store.search([experiment], "tags.`harness.role` = 'comparison-row'")}
+    assert {r.tags["harness.comparison_run"] for r in rows.values()} == {comparison.run_id}
+    assert set(rows) == {"sweep-steps", "random", "sweep-boom"} and rows["random"].name == "random · sweep-toy"
+    steps, never = rows["sweep-steps"].metrics, rows["random"].metrics
+    assert (steps["runs"], steps["solved_runs"], steps["solved_fraction"]) == (3, 2, pytest.approx(2 / 3))
+    assert steps["median_time_to_success_seconds"] == 8.0 and steps["median_time_to_success_at_least_seconds"] == 8.0
+    assert steps["median_ci_low_seconds"] <= 8.0 and "iqm_time_to_success_seconds" not in steps  # infinite: not logged
+    assert never["solved_fraction"] == 0.0 and never["median_time_to_success_at_least_seconds"] == 8.0
+    assert "median_time_to_success_seconds" not in never
+    assert rows["sweep-boom"].metrics["failed_runs"] == 3
+    # every counted run says which row it is in, and carries its configuration's hash and label
+    for run in sweep_site.sweep_runs(uri, result, "cell"):
+        assert run.tags["harness.report_row"] == run.tags["learner"]
+        assert run.tags["harness.config_hash"].startswith("bench-") and run.tags["harness.config_label"] == run.tags["learner"]
+
+    # a second report replaces the rows (no stale statistic stays) and keeps the comparison run
+    again = CliRunner().invoke(main, ["report", "--tracking-uri", uri, "--sweep", result.sweep_id, "--out", str(out)])
+    assert again.exit_code == 0, again.output
+    (same,) = store.search([experiment], "tags.`harness.role` = 'comparison'")
+    assert same.run_id == comparison.run_id and len(store.search([experiment], "tags.`harness.role` = 'comparison-row'")) == 3
 
 
 def test_report_is_deterministic_and_rejects_unknown_sweeps(swept, tmp_path):
@@ -463,7 +507,8 @@ def test_bench_runs_are_grouped_by_configuration(swept, tmp_path, monkeypatch):
 def test_bench_group_ignores_options_at_their_default():
     """A run logged before an option existed and one with the option at its default share a group;
     the option set otherwise, or any other setting, splits it. Defaults come from the installed plugins."""
-    from harness.report import _option_defaults, bench_group_id
+    from harness.configuration import bench_group_id
+    from harness.configuration import option_defaults as _option_defaults
 
     old = {"learner": "pilco", "task": "unicycle", "max_trials": "30", "learner.planning_horizon": "20"}
     defaults = _option_defaults("pilco", "unicycle")
@@ -481,7 +526,8 @@ def test_bench_command_reproduces_the_group_configuration():
     import shlex
 
     from harness.options import parse_assignments
-    from harness.report import _option_defaults, bench_command, bench_group_id, run_config
+    from harness.configuration import bench_command, bench_group_id, run_config
+    from harness.configuration import option_defaults as _option_defaults
     from harness.runner import RunConfig, prepare, route_options, run_params
 
     defaults = _option_defaults("pilco", "double-pendulum")
@@ -501,7 +547,7 @@ def test_bench_command_reproduces_the_group_configuration():
 
 
 def test_test_table_marks_runs_stopped_before_their_limit():
-    from harness.report import test_markdown
+    from harness.report.from_runs import test_markdown
 
     rows = [{"learner": "pilco", "seed": 0, "solved": False, "finished": False, "test_episodes": 1000, "test_success_rate": 0.0, "run_id": "abcdef123"},
             {"learner": "pilco", "seed": 1, "solved": True, "finished": True, "test_episodes": 1000, "test_success_rate": 0.931, "run_id": "bcdefa234"}]

@@ -4,10 +4,10 @@ from __future__ import annotations
 
 import pytest
 
-from harness import sweep
 from harness.errors import HarnessError, OptionError
-from harness.sweep import SweepSpec, format_seeds, parse_seeds, run_sweep
-from harness.tracking import open_client
+from harness.store import Store
+from harness.sweep import Cell, SweepSpec, format_seeds, parse_seeds, pools, run_sweep
+from harness.sweep.progress import RichSweepProgress, SilentSweepProgress, TrialWatcher, format_duration
 from tests.harness import sweep_site
 from tests.harness.sweep_site import children_by_cell, plugin_paths, plugins  # noqa: F401 (fixtures)
 
@@ -24,7 +24,7 @@ def test_seed_ranges_and_identity():
     b = SweepSpec(("sac", "pilco"), ("cartpole",), (2, 1, 0), (("horizon", "30"),), max_trials=5)
     c = SweepSpec(("sac", "pilco"), ("cartpole",), (2, 1, 0), (("horizon", "31"),), max_trials=5)
     assert a.sweep_id == b.sweep_id != c.sweep_id
-    assert len(a.cells()) == 6 and a.cells()[0] == sweep.Cell("pilco", "cartpole", 0)
+    assert len(a.cells()) == 6 and a.cells()[0] == Cell("pilco", "cartpole", 0)
     assert a.command() == "harness sweep --learners pilco,sac --tasks cartpole --seeds 0-2 --max-trials 5 --set horizon=30"
 
 
@@ -56,45 +56,45 @@ def test_missing_ray_is_one_line_with_the_pip_hint(monkeypatch):
     real = importlib.util.find_spec
     monkeypatch.setattr(importlib.util, "find_spec", lambda name, *a: None if name == "ray" else real(name, *a))
     with pytest.raises(HarnessError, match=r"pip install 'pilco-harness\[ray\]'"):
-        sweep.check_executor("ray")
+        pools.check_executor("ray")
 
 
 # ---- in-process pool: the driver's logic -----------------------------------------------------
 
 
 def test_interrupted_child_continues_from_its_checkpoint(plugins, mlflow_uri, monkeypatch):
-    monkeypatch.setattr(sweep, "LocalPool", sweep_site.InlinePool)  # in-process: the driver's logic is under test
+    monkeypatch.setattr(pools, "LocalPool", sweep_site.InlinePool)  # in-process: the driver's logic is under test
     spec = SweepSpec(("random", "sweep-steps"), ("sweep-toy",), (5,), max_trials=3, eval_episodes=1)
     first = run_sweep(spec, mlflow_uri)
-    client = open_client(mlflow_uri)
+    store = Store(mlflow_uri)
     ids = {o.cell.learner: o.run_id for o in first.outcomes}
-    costs = [m.value for m in client.get_metric_history(ids["random"], "eval_cost")]
+    costs = [m.value for m in store.client.get_metric_history(ids["random"], "eval_cost")]
     for run_id in ids.values():  # as if the driver had died: both children interrupted
-        client.set_terminated(run_id, "KILLED")
+        store.set_status(run_id, "KILLED")
 
     again = run_sweep(spec, mlflow_uri)
     outcome = {o.cell.learner: o for o in again.outcomes}
     # random supports resuming: the same child continues from its trial-2 checkpoint and ends identically
     assert outcome["random"].resumed and outcome["random"].run_id == ids["random"]
-    assert client.get_run(ids["random"]).info.status == "FINISHED"
-    history = sorted((m.step, m.value) for m in client.get_metric_history(ids["random"], "eval_cost"))
+    assert store.run(ids["random"]).status == "FINISHED"
+    history = sorted((m.step, m.value) for m in store.client.get_metric_history(ids["random"], "eval_cost"))
     assert [v for step, v in history if step == 3] == [costs[2], costs[2]]
     # sweep-steps cannot resume: a new child, the interrupted one stays KILLED
     assert not outcome["sweep-steps"].resumed and outcome["sweep-steps"].run_id != ids["sweep-steps"]
-    assert client.get_run(ids["sweep-steps"]).info.status == "KILLED"
+    assert store.run(ids["sweep-steps"]).status == "KILLED"
     assert len(children_by_cell(mlflow_uri, again)[("sweep-steps", 5)]) == 2
     assert len(children_by_cell(mlflow_uri, again)[("random", 5)]) == 1
 
 
 def test_progress_view_reports_every_cell_and_the_totals(plugins, mlflow_uri, monkeypatch):
-    monkeypatch.setattr(sweep, "LocalPool", sweep_site.InlinePool)
+    monkeypatch.setattr(pools, "LocalPool", sweep_site.InlinePool)
     from rich.console import Console
 
     console = Console(record=True, width=200, force_terminal=False)
     spec = SweepSpec(("sweep-steps", "sweep-boom"), ("sweep-toy",), (6,), max_trials=2, eval_episodes=1)
     updates = []
 
-    class Recording(sweep.RichSweepProgress):
+    class Recording(RichSweepProgress):
         def update(self, done, running, failed, eta_seconds):
             updates.append((done, running, failed, eta_seconds))
             super().update(done, running, failed, eta_seconds)
@@ -106,63 +106,60 @@ def test_progress_view_reports_every_cell_and_the_totals(plugins, mlflow_uri, mo
     assert updates[0] == (0, 1, 0, None) and updates[-1][:3] == (2, 0, 1) and updates[-1][3] == 0.0
     run_sweep(spec, mlflow_uri, progress=Recording(console))
     assert "1 of 2 cells already finished in an earlier invocation: skipped" in console.export_text()
-    assert sweep.format_duration(3725) == "1:02:05" and sweep.format_duration(65) == "1:05" and sweep.format_duration(None) == "–"
+    assert format_duration(3725) == "1:02:05" and format_duration(65) == "1:05" and format_duration(None) == "–"
 
 
 def test_trial_watcher_reports_each_new_trial_of_running_cells_once(mlflow_uri):
-    """The driver's view of long cells: new hand-overs of RUNNING children, read from the store."""
-    from mlflow.entities import Metric
-
-    from harness.tracking import ensure_experiment
-
-    client = open_client(mlflow_uri)
-    experiment_id = ensure_experiment(client, "watcher-test", mlflow_uri)
-    parent = client.create_run(experiment_id, run_name="sweep-x").info.run_id
-    child = lambda name: client.create_run(experiment_id, run_name=name, tags={"mlflow.parentRunId": parent}).info.run_id  # noqa: E731
-    running, done = child("pilco-cartpole-s0"), child("pilco-cartpole-s1")
+    """The driver's view of long cells: new hand-overs of RUNNING children of every parent, read from the store."""
+    store = Store(mlflow_uri)
+    experiments = [store.ensure_experiment(name) for name in ("watcher-a", "watcher-b")]
+    parents = [(e, store.create_run(e, "sweep x", {})) for e in experiments]
+    child = lambda parent, name: store.create_run(parent[0], name, {"mlflow.parentRunId": parent[1], "learner": "pilco"})  # noqa: E731
+    running, done, other = child(parents[0], "pilco · a · s0"), child(parents[0], "pilco · a · s1"), child(parents[1], "pilco · b · s0")
 
     def log_trial(run_id, step, seconds):
-        values = {"interaction_seconds": seconds, "eval_success_rate": 0.5, "eval_cost": 12.0, "wall_seconds": 7.0 * step, "J_after": 20.0 - step}
-        client.log_batch(run_id, metrics=[Metric(k, v, 0, step) for k, v in values.items()])
+        store.log_metrics(run_id, {"interaction_seconds": seconds, "eval_success_rate": 0.5, "eval_cost": 12.0, "wall_seconds": 7.0 * step,
+                                   "J_after": 20.0 - step}, step=step)
 
     log_trial(running, 1, 4.0)
     log_trial(running, 2, 8.0)
     log_trial(done, 1, 4.0)
-    client.set_terminated(done, "FINISHED")
+    store.set_status(done, "FINISHED")
+    log_trial(other, 1, 4.0)
     seen = []
 
-    class Recording(sweep.SilentSweepProgress):
-        def trial(self, label, record):
-            seen.append((label, record["trial"], record["interaction_seconds"]))
+    class Recording(SilentSweepProgress):
+        def trial(self, label, learner, record):
+            seen.append((label, learner, record["trial"], record["interaction_seconds"]))
 
-    watcher = sweep.TrialWatcher(client, experiment_id, parent, poll_seconds=20.0)
+    watcher = TrialWatcher(store, parents, poll_seconds=20.0)
     watcher.poll(Recording(), now=100.0)
-    assert seen == [("pilco-cartpole-s0", 2, 8.0)]  # the newest trial only; finished children are not watched
+    # the newest trial only, of the running children of both parents; finished children are not watched
+    assert seen == [("pilco · a · s0", "pilco", 2, 8.0), ("pilco · b · s0", "pilco", 1, 4.0)]
     log_trial(running, 3, 12.0)
     watcher.poll(Recording(), now=110.0)  # within the poll interval: the store is not read
-    assert len(seen) == 1
+    assert len(seen) == 2
     watcher.poll(Recording(), now=121.0)
     watcher.poll(Recording(), now=142.0)  # nothing new: nothing printed
-    assert seen == [("pilco-cartpole-s0", 2, 8.0), ("pilco-cartpole-s0", 3, 12.0)]
+    assert seen[2:] == [("pilco · a · s0", "pilco", 3, 12.0)]
 
     from rich.console import Console
 
     console = Console(record=True, width=200, force_terminal=False)
-    sweep.RichSweepProgress(console).trial("pilco-cartpole-s0", {"trial": 3, "interaction_seconds": 12.0, "eval_success_rate": 0.5,
-                                                                 "eval_cost": 12.0, "wall_seconds": 21.0, "J_after": 17.0})
-    assert "pilco-cartpole-s0: trial 3 | 12.0 s interaction | success 50% | eval cost 12.00 | J 17.00 | wall 21 s" in console.export_text()
+    record = {"trial": 3, "interaction_seconds": 12.0, "eval_success_rate": 0.5, "eval_cost": 12.0, "wall_seconds": 21.0, "J_after": 17.0}
+    RichSweepProgress(console).trial("pilco · a · s0", "pilco", record)  # what PILCO declares it logs: J
+    assert "pilco · a · s0: trial 3 | 12.0 s interaction | success 50% | eval cost 12.00 | J 17.00 | wall 21 s" in console.export_text()
 
 
 class _StoppedWhileRunning(sweep_site.InlinePool):
     """A worker that started its cell's run and was then stopped without marking it (a force-killed
     process, a Ray task whose cancelled result came back first); the next wait is the user's Ctrl-C."""
 
-    client = None
+    store = None
 
     def submit(self, job):
-        self.client.create_run(job.experiment_id, run_name="stopped", tags={
-            "mlflow.parentRunId": job.parent_run_id, "learner": job.cell.learner, "task": job.cell.task,
-            "seed": str(job.cell.seed)})
+        self.store.create_run(job.experiment_id, "stopped", {
+            "mlflow.parentRunId": job.parent_run_id, "learner": job.cell.learner, "task": job.cell.task, "seed": str(job.cell.seed)})
         return object()
 
     def wait(self, handles, timeout):
@@ -170,13 +167,12 @@ class _StoppedWhileRunning(sweep_site.InlinePool):
 
 
 def test_ctrl_c_marks_the_runs_of_cells_in_flight_killed(plugins, mlflow_uri, monkeypatch):
-    client = open_client(mlflow_uri)
-    monkeypatch.setattr(_StoppedWhileRunning, "client", client)
-    monkeypatch.setattr(sweep, "LocalPool", _StoppedWhileRunning)
+    store = Store(mlflow_uri)
+    monkeypatch.setattr(_StoppedWhileRunning, "store", store)
+    monkeypatch.setattr(pools, "LocalPool", _StoppedWhileRunning)
     spec = SweepSpec(("sweep-steps",), ("sweep-toy",), (11,), max_trials=2, eval_episodes=1)
     with pytest.raises(KeyboardInterrupt):
         run_sweep(spec, mlflow_uri)
-    experiment_id = client.get_experiment_by_name(sweep.SWEEP_EXPERIMENT).experiment_id
-    (child,) = client.search_runs([experiment_id], "attributes.run_name = 'stopped'")
-    assert child.info.status == "KILLED"  # resumable by the next invocation, not left RUNNING
-    assert [r.info.status for r in sweep_site.sweep_runs(mlflow_uri, spec, "sweep")] == ["KILLED"]
+    (child,) = store.search([store.experiment_id("sweep-toy")], "attributes.run_name = 'stopped'")
+    assert child.status == "KILLED"  # resumable by the next invocation, not left RUNNING
+    assert [r.status for r in sweep_site.sweep_runs(mlflow_uri, spec, "sweep")] == ["KILLED"]

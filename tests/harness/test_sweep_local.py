@@ -5,8 +5,8 @@ from __future__ import annotations
 from click.testing import CliRunner
 
 from harness.cli import main
-from harness.sweep import SWEEP_EXPERIMENT, SweepSpec, run_sweep
-from harness.tracking import open_client
+from harness.store import Store
+from harness.sweep import SweepSpec, run_sweep
 from tests.harness.sweep_site import (  # noqa: F401 (fixtures)
     check_steps_cells, children_by_cell, plugin_paths, plugins, sweep_runs, wait_until_cells_run)
 from tests.processes import HarnessProcess
@@ -23,12 +23,14 @@ def test_local_sweep_isolates_failures_and_resumes(plugins, mlflow_uri):
     runs = children_by_cell(mlflow_uri, result)
     for seed in (2, 3, 4):
         (boom,) = runs[("sweep-boom", seed)]
-        assert boom.info.status == "FAILED" and boom.data.tags["harness.error"] == "RuntimeError: boom in the learner"
-    client = open_client(mlflow_uri)
-    parent = client.get_run(result.parent_run_id)
-    assert parent.info.status == "FAILED" and parent.data.tags["harness.cells_failed"] == "3"
-    assert parent.info.experiment_id == client.get_experiment_by_name(SWEEP_EXPERIMENT).experiment_id
-    assert parent.data.params["command"] == spec.command()
+        assert boom.status == "FAILED" and boom.tags["harness.error"] == "RuntimeError: boom in the learner"
+        assert boom.tags["harness.resumable"] == "false" and boom.tags["mlflow.note.content"].startswith("**Failed** after")
+    store = Store(mlflow_uri)
+    (experiment_id, parent_id), = result.parents.values()
+    parent = store.run(parent_id)
+    assert parent.status == "FAILED" and parent.tags["harness.cells_failed"] == "3" and parent.metrics["cells_failed"] == 3
+    assert parent.experiment_id == experiment_id == store.experiment_id("sweep-toy")  # the task's experiment
+    assert parent.name == f"sweep {result.sweep_id} · sweep-toy" and parent.params["command"] == spec.command()
 
     # the same command again, through the CLI: finished cells are skipped, failed ones run again
     cli = CliRunner().invoke(main, [
@@ -50,9 +52,9 @@ def test_a_dying_cell_process_is_reported_and_the_sweep_goes_on(plugins, mlflow_
     assert outcome["sweep-crash"].status == "failed"
     assert outcome["sweep-crash"].error.startswith("worker process died (the cell's process exited with code 3 before handing back")
     assert outcome["sweep-steps"].status == "finished" and outcome["sweep-steps"].solved  # the next cell ran
-    crashed = open_client(mlflow_uri).get_run(outcome["sweep-crash"].run_id)  # the run the dead worker had started
-    assert crashed.info.status == "KILLED" and crashed.data.tags["harness.error"].startswith("worker process died")
-    assert crashed.data.metrics["interaction_seconds"] == 4.0  # its first hand-over was logged before the crash
+    crashed = Store(mlflow_uri).run(outcome["sweep-crash"].run_id)  # the run the dead worker had started
+    assert crashed.status == "KILLED" and crashed.tags["harness.error"].startswith("worker process died")
+    assert crashed.metrics["interaction_seconds"] == 4.0  # its first hand-over was logged before the crash
 
 
 def test_sigterm_to_the_driver_stops_the_workers_and_marks_the_runs_killed(plugins, mlflow_uri, tmp_path):
@@ -70,8 +72,8 @@ def test_sigterm_to_the_driver_stops_the_workers_and_marks_the_runs_killed(plugi
         output = proc.output()
     assert code == 130, output
     assert "interrupted" in output and "Traceback" not in output
-    assert sorted(r.info.status for r in sweep_runs(mlflow_uri, spec, "cell")) == ["KILLED", "KILLED"]
-    assert [r.info.status for r in sweep_runs(mlflow_uri, spec, "sweep")] == ["KILLED"]
+    assert sorted(r.status for r in sweep_runs(mlflow_uri, spec, "cell")) == ["KILLED", "KILLED"]
+    assert [r.status for r in sweep_runs(mlflow_uri, spec, "sweep")] == ["KILLED"]
 
 
 def test_sigusr1_to_the_driver_drains_the_sweep(plugins, mlflow_uri, tmp_path):
@@ -85,11 +87,9 @@ def test_sigusr1_to_the_driver_drains_the_sweep(plugins, mlflow_uri, tmp_path):
     args = ["sweep", "--learners", "sweep-slow", "--tasks", "sweep-toy", "--seeds", "0-2",
             "--max-trials", "5000", "--eval-episodes", "1", "--workers", "2", "--tracking-uri", mlflow_uri, "--quiet"]
     spec = SweepSpec(("sweep-slow",), ("sweep-toy",), (0, 1, 2), max_trials=5000, eval_episodes=1)
-    client = open_client(mlflow_uri)
     with HarnessProcess(args, tmp_path) as proc:
         deadline = time.time() + 120
-        while not (len(cells := sweep_runs(mlflow_uri, spec, "cell")) == 2
-                   and all(client.get_metric_history(r.info.run_id, "interaction_seconds") for r in cells)):
+        while not (len(cells := sweep_runs(mlflow_uri, spec, "cell")) == 2 and all(r.history("interaction_seconds") for r in cells)):
             assert time.time() < deadline, f"two cells did not start in time:\n{proc.output()}"
             time.sleep(0.5)
         proc.signal(signal.SIGUSR1)
@@ -99,10 +99,13 @@ def test_sigusr1_to_the_driver_drains_the_sweep(plugins, mlflow_uri, tmp_path):
     assert "0 failed, 2 stopped as asked, 1 not started" in output and "Traceback" not in output
     assert "re-run the same command to continue" in output
     cells = sweep_runs(mlflow_uri, spec, "cell")
-    assert sorted(int(r.data.tags["seed"]) for r in cells) == [0, 1] and {r.info.status for r in cells} == {"KILLED"}
+    assert sorted(int(r.tags["seed"]) for r in cells) == [0, 1] and {r.status for r in cells} == {"KILLED"}
     for run in cells:
-        stopped_at = re.search(rf"{run.data.tags['mlflow.runName']}: stopped after trial (\d+) as asked \(SIGUSR1\)", output)
+        stopped_at = re.search(rf"sweep-slow-sweep-toy-s{run.tags['seed']}: stopped after trial (\d+) as asked \(SIGUSR1\)", output)
         assert stopped_at, output
-        assert max(m.step for m in client.get_metric_history(run.info.run_id, "eval_cost")) == int(stopped_at[1])
+        assert max(run.history("eval_cost")) == int(stopped_at[1])
+        # in the UI: stopped, not failed; sweep-slow keeps no checkpoint, so the next invocation starts it again
+        assert run.tags["harness.resumable"] == "false" and "**Stopped before its limit**" in run.tags["mlflow.note.content"]
+        assert "Not resumable (no checkpoint)" in run.tags["mlflow.note.content"]
     (parent,) = sweep_runs(mlflow_uri, spec, "sweep")
-    assert parent.info.status == "KILLED" and parent.data.tags["harness.cells_stopped"] == "2"
+    assert parent.status == "KILLED" and parent.tags["harness.cells_stopped"] == "2"

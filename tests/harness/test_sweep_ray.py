@@ -27,17 +27,16 @@ def test_ray_sweep_gives_the_same_results(plugins, mlflow_uri, tmp_path):
     code, output = run_harness(args, tmp_path, timeout=600)
     assert code == 0, output
     (parent,) = sweep_runs(mlflow_uri, spec, "sweep")
-    assert parent.info.status == "FINISHED" and parent.data.tags["harness.last_executor"] == "ray"
+    assert parent.status == "FINISHED" and parent.tags["harness.last_executor"] == "ray"
     cells = sweep_runs(mlflow_uri, spec, "cell")
-    assert sorted(r.info.status for r in cells) == ["FINISHED"] * 6
-    check_steps_cells(mlflow_uri, SimpleNamespace(sweep_id=spec.sweep_id, parent_run_id=parent.info.run_id,
-                                                  experiment_id=parent.info.experiment_id))
-    assert all(r.data.tags["solved"] == "false" for r in cells if r.data.tags["learner"] == "random")
+    assert sorted(r.status for r in cells) == ["FINISHED"] * 6
+    check_steps_cells(mlflow_uri, SimpleNamespace(sweep_id=spec.sweep_id, parents={"sweep-toy": (parent.experiment_id, parent.run_id)}))
+    assert all(r.tags["solved"] == "false" for r in cells if r.tags["learner"] == "random")
 
     code, output = run_harness(args, tmp_path, timeout=300)  # resumes: nothing left to run, Ray not started
     assert code == 0, output
     assert f"sweep {spec.sweep_id}: 0 finished, 6 skipped" in output
-    assert [r.info.run_id for r in sweep_runs(mlflow_uri, spec, "sweep")] == [parent.info.run_id]
+    assert [r.run_id for r in sweep_runs(mlflow_uri, spec, "sweep")] == [parent.run_id]
 
 
 def test_sigterm_to_a_ray_driver_cancels_the_cells_and_marks_the_runs_killed(plugins, mlflow_uri, tmp_path):
@@ -53,5 +52,5 @@ def test_sigterm_to_a_ray_driver_cancels_the_cells_and_marks_the_runs_killed(plu
         output = proc.output()
     assert code == 130, output
     assert "interrupted" in output
-    assert sorted(r.info.status for r in sweep_runs(mlflow_uri, spec, "cell")) == ["KILLED", "KILLED"]
-    assert [r.info.status for r in sweep_runs(mlflow_uri, spec, "sweep")] == ["KILLED"]
+    assert sorted(r.status for r in sweep_runs(mlflow_uri, spec, "cell")) == ["KILLED", "KILLED"]
+    assert [r.status for r in sweep_runs(mlflow_uri, spec, "sweep")] == ["KILLED"]

@@ -2,6 +2,8 @@
 
 from __future__ import annotations
 
+from pathlib import Path
+
 import numpy as np
 import pytest
 import torch
@@ -31,6 +33,11 @@ def test_a_saved_run_gives_back_its_task_settings_models_policies_and_episodes(s
     with SavedPilcoRun(pilco.run_id, uri, task="cartpole") as saved:
         assert saved.task.spec.horizon == 12  # the recorded task option, not the task's default
         assert saved.planning_horizon == 12 and saved.mean_only is False
+        # the options left to the preset are logged with the values used beside them
+        params = saved.params
+        assert (params["learner.controller"], params["used.learner.controller"]) == ("None", "rbf")
+        assert (params["learner.planning_horizon"], params["used.learner.planning_horizon"]) == ("None", "12")
+        assert params["used.learner.sparse_threshold"] == "300" and "used.learner.num_centres" not in params  # set: logged as is
         assert saved.model_trials() == [1, 2] and saved.policy_trials() == [1, 2]
         episodes = saved.episodes()
         # the random rollout and trial 1's; the policy of trial 2 was only evaluated (the run ended there)
@@ -46,8 +53,9 @@ def test_a_saved_run_gives_back_its_task_settings_models_policies_and_episodes(s
             J = float(objective.step_costs()[0].sum())
         # the closed-form J of the handed-over policy under the trial's model is what the run logged
         assert J == pytest.approx(saved.metric("J_after")[2], rel=1e-6)
-        folder = saved.file("trial001/pilco_settings.json").parent
-    assert not folder.exists()  # downloads are removed when the block ends
+        settings_file = saved.file("trial001/pilco_settings.json")
+    # a local store's files are read where they are (nothing downloaded, nothing left to remove)
+    assert settings_file.is_relative_to(Path(uri[len("sqlite:///"):]).parent / "mlruns") and settings_file.exists()
 
 
 def test_a_missing_artifact_or_a_non_pilco_run_is_named(stored):

@@ -1,0 +1,80 @@
+"""What a learner declares it logs, so that progress lines and reports show it without the harness
+knowing its metric or file names.
+
+A learner logs per-trial numbers through ``self.metrics`` and files through ``self.artifacts``
+(:class:`harness.learner.Learner`); its class attribute ``logs`` says which of them mean what::
+
+    logs = Logs(
+        shown=(("J_after", "J"),),                                    # in each trial's progress line
+        timings=(Timing("model_train_seconds", "model_training", "GP training", "GP"),),
+        policy_size="policy_parameters",                              # Table 1's policy parameters
+        trial_figure=TrialFigure("prediction_trial*.png", "prediction"),
+    )
+"""
+
+from __future__ import annotations
+
+from dataclasses import dataclass
+
+
+@dataclass(frozen=True)
+class Timing:
+    """A per-trial metric: seconds of one part of a trial's work.
+
+    Attributes:
+        metric: the logged name, e.g. ``"policy_opt_seconds"``.
+        key: the part's column key in ``walltime_<task>.csv`` (``share_<key>``), e.g. ``"policy_search"``.
+        title: its column title in ``walltime_<task>.md``, e.g. ``"policy search"``.
+        short: its name in a progress line, e.g. ``"policy"``.
+    """
+
+    metric: str
+    key: str
+    title: str
+    short: str
+
+
+@dataclass(frozen=True)
+class TrialFigure:
+    """A figure the learner attaches at every hand-over (in the run's ``trialKKK/`` folders).
+
+    Attributes:
+        pattern: its file names (``fnmatch``), e.g. ``"prediction_trial*.png"``.
+        name: the report's copy of a representative run's last one is ``<name>_<task>_<row>.png``.
+    """
+
+    pattern: str
+    name: str
+
+
+@dataclass(frozen=True)
+class Logs:
+    """What a learner logs besides the runner's records.
+
+    Attributes:
+        shown: per-trial metrics shown in progress lines, as ``(metric, label)``, in order.
+        timings: per-trial seconds of the learner's own work (:class:`Timing`); the report splits the
+            wall time into them, the evaluation's and the rest.
+        policy_size: the metric holding the policy's number of parameters (Table 1), if logged.
+        trial_figure: a figure attached at every hand-over (:class:`TrialFigure`), if any.
+    """
+
+    shown: tuple[tuple[str, str], ...] = ()
+    timings: tuple[Timing, ...] = ()
+    policy_size: str | None = None
+    trial_figure: TrialFigure | None = None
+
+
+#: the harness's own timing: the evaluation episodes of each hand-over (logged by the runner)
+EVALUATION = Timing("eval_seconds", "evaluation", "evaluation", "eval")
+
+
+def declared_logs(learner: str) -> Logs:
+    """The :class:`Logs` of the installed learner ``learner``; empty for one not installed here."""
+    from harness.discovery import load_learner
+    from harness.errors import HarnessError
+
+    try:
+        return load_learner(learner).logs
+    except HarnessError:
+        return Logs()

@@ -1,0 +1,65 @@
+"""Which of a run's files a committed store keeps, the size budget, and the description that says,
+in the MLflow UI, what was left out.
+
+The repository commits ``results/runs/mlflow.db`` and, of ``results/runs/mlruns/``, the small files:
+summaries, settings and tables (``.json``, ``.md``, ``.csv``) and plots (``.png``): every run's
+``result.json``, its per-trial plots and settings, its ``harness eval`` summary and histogram, and the
+report's files on the comparison runs. The repository's ``.gitignore`` lets exactly these through
+(:data:`COMMITTED_SUFFIXES`). Policies, checkpoints, trained models and episode data stay on the machine
+that ran the run, but for the newest checkpoint of a run stopped before its limit, which is added by hand
+so that it can be resumed (``results/README.md``). The budget: no committed file over
+:data:`MAX_FILE_BYTES`, all of them together under :data:`BUDGET_BYTES` (a test checks the repository).
+"""
+
+from __future__ import annotations
+
+from collections import defaultdict
+from collections.abc import Sequence
+from pathlib import Path
+
+from harness.store import layout
+from harness.store.reader import Artifact, RunReader
+
+#: the artifact files a committed store keeps (the repository's .gitignore lets these through)
+COMMITTED_SUFFIXES = (".json", ".md", ".csv", ".png")
+#: the largest artifact file a committed store may hold
+MAX_FILE_BYTES = 1_000_000
+#: all committed artifact files of ``results/runs`` together (checkpoints of stopped runs included)
+BUDGET_BYTES = 30_000_000
+#: where a run's description begins to say which of its files a committed store holds
+FILES_HEADING = "\n\n---\n**Files**"
+
+
+def committed(path: str) -> bool:
+    """Whether a run's artifact ``path`` is of a kind the committed store keeps."""
+    return Path(path).suffix in COMMITTED_SUFFIXES
+
+
+def _megabytes(size: float) -> str:
+    return f"{size / 1e6:.1f} MB" if size >= 1e5 else f"{size / 1e3:.0f} kB"
+
+
+def files_note(artifacts: Sequence[Artifact]) -> str:
+    """Markdown: how many of the files a committed store keeps, and the others by folder and kind."""
+    if not artifacts:
+        return (f"{FILES_HEADING}: none in this store (its artifact folder was not kept; the metrics, params and "
+                "tags above are all there is).")
+    kept = [a for a in artifacts if committed(a.path)]
+    left: dict[str, list[Artifact]] = defaultdict(list)
+    for a in artifacts:
+        if not committed(a.path):
+            folder = Path(a.path).parent.name
+            left[f"{'trialNNN' if folder.startswith('trial') else folder or '.'}/*{Path(a.path).suffix}"].append(a)
+    text = (f"{FILES_HEADING} in the committed store (results/README.md: .json, .md, .csv and .png files): {len(kept)} of "
+            f"{len(artifacts)} ({_megabytes(sum(a.size for a in kept))} of {_megabytes(sum(a.size for a in artifacts))}).")
+    if left:
+        groups = ", ".join(f"`{name}` ({len(files)}, {_megabytes(sum(a.size for a in files))})" for name, files in sorted(left.items()))
+        text += (f" Not committed, on the machine that ran it: {groups}; the newest checkpoint of a run stopped before "
+                 "its limit is committed by hand.")
+    return text
+
+
+def describe_files(run: RunReader) -> str:
+    """The run's description with its :func:`files_note` (replacing an earlier one; the rest kept)."""
+    note = run.tags.get(layout.NOTE_TAG, "")
+    return note.split(FILES_HEADING)[0] + files_note(run.all_artifacts())

@@ -1,0 +1,143 @@
+"""A store that travels: a copy of a store at another path reads every file, refuses writes until
+relocated, and once relocated opens every artifact as `mlflow ui` does; a committed store keeps the
+small files within the budget and says in each run's description what it left out."""
+
+from __future__ import annotations
+
+import shutil
+import subprocess
+from pathlib import Path
+
+import pytest
+from click.testing import CliRunner
+
+from harness.cli import main
+from harness.errors import TrackingError
+from harness.runner import RunConfig, run
+from harness.store import Store, layout
+from harness.store.committed import BUDGET_BYTES, MAX_FILE_BYTES, committed
+from harness.sweep import SweepSpec, pools, run_sweep
+from harness.tracking import MlflowTracker
+from tests.harness import sweep_site
+
+REPO = Path(__file__).resolve().parents[2]
+
+
+def uri_of(folder: Path) -> str:
+    return f"sqlite:///{folder / 'mlflow.db'}"
+
+
+@pytest.fixture(scope="module")
+def original(tmp_path_factory) -> Path:
+    """A store with bench runs, a sweep and a published report (its comparison runs and their files)."""
+    folder = tmp_path_factory.mktemp("original")
+    paths = sweep_site.install(tmp_path_factory.mktemp("travel-plugins"))
+    with pytest.MonkeyPatch.context() as mp:
+        sweep_site.activate(paths, mp)
+        mp.setattr(pools, "LocalPool", sweep_site.InlinePool)
+        spec = SweepSpec(("sweep-steps", "random"), ("sweep-toy",), (2, 3), max_trials=2, eval_episodes=1)
+        result = run_sweep(spec, uri_of(folder))
+        for seed in (0, 1):
+            run(RunConfig("random", "cartpole", seed, max_trials=2, eval_episodes=1), tracker=MlflowTracker(uri_of(folder)))
+        report = CliRunner().invoke(main, ["report", "--tracking-uri", uri_of(folder), "--sweep", result.sweep_id,
+                                           "--out", str(tmp_path_factory.mktemp("report")), "--fig5-task", "sweep-toy"])
+        assert report.exit_code == 0, report.output
+    return folder
+
+
+def files_by_run(store: Store) -> dict[str, list[str]]:
+    return {r.run_id: [a.path for a in r.all_artifacts()] for r in store.search(None)}
+
+
+def test_a_copy_reads_every_file_refuses_writes_and_once_relocated_opens_every_artifact(original, tmp_path):
+    copy = tmp_path / "elsewhere" / "runs"
+    shutil.copytree(original, copy)
+    before = files_by_run(Store(uri_of(original)))
+    assert sum(map(len, before.values())) > 20 and any(p.startswith("report/") for paths in before.values() for p in paths)
+
+    # the harness reads every file of the copy from the copy's own folder
+    moved = Store(uri_of(copy))
+    assert files_by_run(moved) == before
+    for reader in moved.search(None):
+        for artifact in reader.all_artifacts():
+            assert reader.file(artifact.path).is_relative_to(copy)
+    # but writes nothing where the store was recorded: new runs and files would land at the old path
+    with pytest.raises(TrackingError, match=r"outside the store's folder .*harness store relocate --tracking-uri"):
+        MlflowTracker(uri_of(copy)).start("cartpole", "x", {}, {})
+    checked = CliRunner().invoke(main, ["store", "check", "--tracking-uri", uri_of(copy)])
+    assert checked.exit_code == 1 and "harness store relocate" in checked.stderr and "its files are in this store's folder" in checked.output
+
+    relocated = CliRunner().invoke(main, ["store", "relocate", "--tracking-uri", uri_of(copy)])
+    assert relocated.exit_code == 0 and "10 runs now keep their artifacts in the store's folder" in relocated.output, relocated.output
+    assert str(original / "mlruns") in relocated.output.split("(before: ")[1]  # and the Default experiment's, wherever it was
+    assert "already in the store's folder" in CliRunner().invoke(main, ["store", "relocate", "--tracking-uri", uri_of(copy)]).output
+    assert CliRunner().invoke(main, ["store", "check", "--tracking-uri", uri_of(copy)]).exit_code == 0
+    # MLflow itself (what `mlflow ui` lists and serves) now finds every artifact in the copy
+    client = Store(uri_of(copy)).client
+    for run_id, paths in before.items():
+        for path in paths:
+            local = Path(client.download_artifacts(run_id, path, str(tmp_path / "downloads" / run_id)))
+            assert local.read_bytes() == (copy / Path(moved.run(run_id).local_root).relative_to(copy) / path).read_bytes()
+        assert client.get_run(run_id).info.artifact_uri.startswith((copy / "mlruns").as_uri())
+    # and new runs write into the copy, not into the original
+    result = run(RunConfig("random", "cartpole", 5, max_trials=1, eval_episodes=1), tracker=MlflowTracker(uri_of(copy)))
+    assert Store(uri_of(copy)).run(result.run_id).local_root.is_relative_to(copy)
+    assert files_by_run(Store(uri_of(original))) == before
+
+
+def test_a_clone_with_only_the_committed_files_opens_every_link_and_says_what_it_left_out(original, tmp_path):
+    described = CliRunner().invoke(main, ["store", "describe", "--tracking-uri", uri_of(original)])
+    assert described.exit_code == 0 and "run descriptions say what is committed" in described.output
+    clone = tmp_path / "clone"
+    clone.mkdir()
+    shutil.copy(original / "mlflow.db", clone / "mlflow.db")
+    for path in (original / "mlruns").rglob("*"):
+        if path.is_file() and committed(path.name):
+            (clone / path.relative_to(original).parent).mkdir(parents=True, exist_ok=True)
+            shutil.copy(path, clone / path.relative_to(original))
+    assert CliRunner().invoke(main, ["store", "relocate", "--tracking-uri", uri_of(clone)]).exit_code == 0
+    store = Store(uri_of(clone))
+    for reader in store.search(None):
+        listed = [a.path for a in reader.all_artifacts()]
+        for path in listed:  # every link the UI shows opens
+            assert store.client.download_artifacts(reader.run_id, path, str(tmp_path / "dl" / reader.run_id))
+        if reader.role in ("", layout.ROLE_CELL):
+            assert layout.RESULT in listed  # what the README promises of every run
+            note = reader.tags[layout.NOTE_TAG]
+            assert "**Files** in the committed store" in note and "Not committed, on the machine that ran it: " in note
+            has_policies = any(a.path.startswith("policies/") for a in Store(uri_of(original)).run(reader.run_id).all_artifacts())
+            assert "`episodes/*.npz` (1, " in note and note.startswith("**")  # the end note kept
+            assert ("`policies/*.policy` (" in note) == has_policies  # learners without policy_state save none
+        if reader.role == layout.ROLE_COMPARISON:
+            assert "report/comparison.json" in listed and "report/curves_sweep-toy.png" in listed
+    # describing again replaces the files section instead of adding another
+    CliRunner().invoke(main, ["store", "describe", "--tracking-uri", uri_of(original)])
+    assert all(r.tags.get(layout.NOTE_TAG, "").count("**Files**") == 1 for r in Store(uri_of(original)).search(None))
+
+
+def test_the_gitignore_lets_through_exactly_the_committed_kinds_of_file(tmp_path):
+    """The repository's .gitignore and harness.store.committed agree on which artifacts a committed store keeps."""
+    shutil.copy(REPO / ".gitignore", tmp_path / ".gitignore")
+    artifacts = "results/runs/mlruns/cartpole/0123/artifacts"
+    samples = [f"{artifacts}/{name}" for name in (
+        "result.json", "policies/policy_trial001.pkl", "checkpoints/ckpt_trial003.pkl", "episodes/interaction_episodes.npz",
+        "trial001/model_trial001.pt", "trial001/prediction_trial001.png", "trial001/gp_hyperparameters_trial001.json",
+        "test/test_summary.json", "test/test_final_distances.npy", "report/comparison_cartpole.md", "report/comparison_cartpole.csv")]
+    for sample in [*samples, "mlruns/1/0123/artifacts/result.json", "mlflow.db"]:
+        (tmp_path / sample).parent.mkdir(parents=True, exist_ok=True)
+        (tmp_path / sample).write_text("x")
+    git = lambda *args: subprocess.run(["git", *args], cwd=tmp_path, check=True, capture_output=True, text=True).stdout  # noqa: E731
+    git("init", "-q")
+    git("add", "-A")
+    added = set(git("diff", "--cached", "--name-only").split()) - {".gitignore"}
+    assert added == {s for s in samples if committed(s)} and len(added) == 6
+
+
+def test_the_committed_store_keeps_within_its_budget():
+    """What the repository commits of results/runs/mlruns: no file over MAX_FILE_BYTES, all under BUDGET_BYTES."""
+    listed = subprocess.run(["git", "ls-files", "-z", "results/runs/mlruns"], cwd=REPO, capture_output=True, text=True)
+    if listed.returncode != 0:
+        pytest.skip("not a git checkout")
+    sizes = {path: (REPO / path).stat().st_size for path in listed.stdout.split("\0") if path and (REPO / path).exists()}
+    assert [p for p, size in sizes.items() if size > MAX_FILE_BYTES] == []
+    assert sum(sizes.values()) <= BUDGET_BYTES
