@@ -225,6 +225,33 @@ def initial_controller(spec: TaskSpec, preset: Preset, layout: StateLayout, squa
     return SquashedController(base, spec.action_high, squash)
 
 
+def stalled(J: float, previous_J: float | None, predicted: float | None, realised: float | None, tol: float | None) -> bool:
+    """Whether the policy search is stuck in an optimum the model is confident about (the fresh-start rule).
+
+    True when ``tol`` is set, the search just done ended at a ``J`` within ``tol`` (relative) of the
+    previous trial's, and the last trial's realised cost over the predicted steps was within ``tol``
+    (relative) of its prediction: J has stopped moving, and more data of the same policy will not
+    move the model. All costs are sums over the planning horizon (dimensionless, task cost units).
+    """
+    if tol is None or previous_J is None or predicted is None or realised is None:
+        return False
+    if not all(math.isfinite(v) for v in (J, previous_J, predicted, realised)):
+        return False
+    return abs(J - previous_J) <= tol * abs(previous_J) and abs(realised - predicted) <= tol * abs(realised)
+
+
+def _predicted_sum(predicted: tuple[np.ndarray, np.ndarray] | None) -> float | None:
+    """The predicted expected cost summed over the planning horizon, or None without a prediction."""
+    return None if predicted is None else float(np.sum(predicted[0]))
+
+
+def _realised_sum(interaction: Interaction, predicted: tuple[np.ndarray, np.ndarray] | None) -> float | None:
+    """The last episode's cost over the steps a prediction covers (its first ``len(mean)`` steps)."""
+    if predicted is None or not interaction.episodes:
+        return None
+    return float(np.sum(interaction.episodes[-1].costs[: len(predicted[0])]))
+
+
 def next_planning_horizon(horizon: int, task_horizon: int, search, grow_below: float | None) -> int:
     """The planning horizon (steps) for the next trial: doubled, up to ``task_horizon``, when
     ``grow_below`` is set and the search just done predicts a mean cost per step ``J/horizon``
@@ -277,6 +304,9 @@ class Pilco(Learner):
         Option("gp_refresh_pseudo", bool, False, "draw the FITC pseudo-inputs afresh from the data at every trial "
                "(default: continue from the previous trial's, as the reference does)"),
         Option("gp_restarts", int, 0, "extra GP training runs from perturbed starts (best kept)", low=0),
+        Option("fresh_start_tol", float, None, "when J moved less than this fraction since the last trial and the "
+               "last trial's realised cost was within this fraction of its prediction (stuck in an optimum the model "
+               "is sure of), also search from fresh initial parameters and keep the lower J (default: off)", low=0.0),
         Option("policy_max_iterations", int, None, "L-BFGS iterations (~line searches) per policy search (default: task preset, 150)", low=1),
         Option("policy_max_evaluations", int, None, "J+dJ evaluations per policy search (default: task preset, 300; unicycle 150)", low=1),
         Option("threads", int, None, "CPU threads (default: the harness's choice, all cores for harness bench and 1 per "
@@ -375,13 +405,14 @@ class Pilco(Learner):
                 explore = UniformRandomPolicy(scale * spec.action_low, scale * spec.action_high, self.seed)
                 for _ in range(self.preset.initial_rollouts):
                     interaction.rollout(explore)
-                hyperparameters, trial, predicted, sampled = None, 0, None, None
+                hyperparameters, trial, predicted, sampled, last_J = None, 0, None, None, None
             else:  # continue right after the hand-over of trial `trial`
                 controller.load_state_dict(resumed["controller"])
                 hyperparameters = GPHyperparameters.from_dict(resumed["hyperparameters"])
                 trial, predicted = resumed["trial"], resumed["predicted"]
                 self.horizon = resumed.get("planning_horizon", self.horizon)
                 sampled = resumed.get("sampled")
+                last_J = resumed.get("J_after")
             while True:
                 if trial > 0:  # apply the policy handed over last for one trial, record the data
                     episode = interaction.rollout(PilcoPolicy(copy.deepcopy(controller).cpu(), self.layout))
@@ -406,12 +437,20 @@ class Pilco(Learner):
                 except NumericalError:
                     objective.set_flat(previous)  # keep the previous policy, say so in the metrics
                     search, failed = None, 1.0
+                fresh = None
+                if search is not None and stalled(search.J_after, last_J, _predicted_sum(predicted), _realised_sum(interaction, predicted),
+                                                  o["fresh_start_tol"]):
+                    search, fresh = self._fresh_start(objective, controller, search, trial, kernel, threads)
                 try:
                     predicted = objective.predicted_costs()
                 except (NumericalError, torch.linalg.LinAlgError):  # the kept policy's prediction degenerated: no plot, say so
                     predicted = None
                 sampled = sampled_costs(objective, o["sample_particles"], seed=1000 * self.seed + trial) if o["sample_particles"] else None
                 self.metrics = self._trial_metrics(fit, search, failed, predicted, objective.num_params)
+                if o["fresh_start_tol"] is not None:
+                    self.metrics.update(fresh_start=float(fresh is not None), fresh_start_kept=float(bool(fresh and fresh["kept"])),
+                                        J_fresh_start=fresh["J"] if fresh else math.nan)
+                last_J = search.J_after if search is not None else last_J
                 self.metrics["planning_horizon"] = float(self.horizon)
                 if sampled is not None:
                     self.metrics["J_sampled"] = float(sampled.sum())
@@ -426,10 +465,34 @@ class Pilco(Learner):
                     "predicted": predicted,
                     "sampled": sampled,
                     "planning_horizon": self.horizon,
+                    "J_after": last_J,
                 }
                 yield PilcoPolicy(copy.deepcopy(controller).cpu(), self.layout)
         finally:
             shutil.rmtree(workdir, ignore_errors=True)
+
+    def _fresh_start(self, objective: PolicyObjective, controller: SquashedController, search, trial: int, kernel: str,
+                     threads: int) -> tuple[Any, dict[str, Any]]:
+        """A second policy search from fresh initial parameters (seeded by run seed and trial); the
+        lower J of the two is left in the controller. Returns the search to report (the kept one, with
+        both searches' time and evaluations) and ``{"J": fresh J, "kept": bool}``."""
+        kept_theta = objective.get_flat()
+        generator = torch.Generator().manual_seed(1_000_003 * (self.seed + 1) + trial)
+        controller.load_state_dict(self._new_controller(generator).state_dict())  # copied onto the controller's device
+        try:
+            with torch_threads(1 if kernel == "numba" else threads):
+                second = optimise_policy(objective, self.preset.policy_max_iterations, self.preset.policy_max_evaluations)
+        except NumericalError:
+            objective.set_flat(kept_theta)
+            return search, {"J": math.nan, "kept": False}
+        better = second.J_after < search.J_after
+        if not better:
+            objective.set_flat(kept_theta)
+        winner = second if better else search
+        combined = replace(winner, J_before=search.J_before, seconds=search.seconds + second.seconds,
+                           evaluations=search.evaluations + second.evaluations, iterations=search.iterations + second.iterations,
+                           failed_evaluations=search.failed_evaluations + second.failed_evaluations)
+        return combined, {"J": float(second.J_after), "kept": better}
 
     def _save_settings(self, workdir: Path) -> Path:
         """``pilco_settings.json``: the resolved preset (options over the task's defaults) and layout."""

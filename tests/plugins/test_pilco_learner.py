@@ -173,3 +173,46 @@ def test_a_degenerate_prediction_does_not_end_the_run(monkeypatch, error):
     assert dict(tracker.metrics["prediction_failed"]) == {1: 1.0, 2: 1.0}
     assert "predicted_cost" not in tracker.metrics
     assert not any(p.name.startswith("prediction_trial") for p, _ in tracker.artifacts)
+
+
+def test_stalled_rule_needs_a_still_J_and_a_confirmed_prediction():
+    from plugins.pilco.learner import stalled
+
+    assert stalled(28.4, 28.5, predicted=28.37, realised=28.26, tol=0.05)  # the stuck cart-pole seed 11 at trial 9
+    assert not stalled(20.0, 28.5, predicted=28.37, realised=28.26, tol=0.05)  # J still moving
+    assert not stalled(28.4, 28.5, predicted=12.0, realised=28.26, tol=0.05)  # the model was wrong: new data will move it
+    assert not stalled(28.4, 28.5, predicted=28.37, realised=28.26, tol=None)  # off by default
+    assert not stalled(28.4, None, predicted=28.37, realised=28.26, tol=0.05)  # no previous search
+    assert not stalled(28.4, 28.5, predicted=None, realised=None, tol=0.05)
+    assert not stalled(float("nan"), 28.5, predicted=28.37, realised=28.26, tol=0.05)
+
+
+def test_fresh_start_keeps_the_lower_J_of_the_two_searches(monkeypatch):
+    """With a tolerance that always holds, every trial after the first also searches from fresh
+    parameters; the reported J is the lower of the two searches' (recorded independently here), the
+    metrics say which was kept, and both searches' time is counted."""
+    import plugins.pilco.learner as learner_module
+
+    searches = []
+
+    def recording(*args, **kwargs):
+        result = learner_module.optimise_policy.__wrapped__(*args, **kwargs)
+        searches.append(result)
+        return result
+
+    recording.__wrapped__ = learner_module.optimise_policy
+    monkeypatch.setattr(learner_module, "optimise_policy", recording)
+    tracker = MemoryTracker()
+    options = dict(TINY, fresh_start_tol="1e9", plots="false")
+    result = run(RunConfig("pilco", "cartpole", seed=1, learner_options=options, task_options={"horizon": 10}, max_trials=3,
+                           eval_episodes=1), tracker=tracker)
+    assert result.trials == 3
+    fresh, kept = dict(tracker.metrics["fresh_start"]), dict(tracker.metrics["fresh_start_kept"])
+    assert fresh == {1: 0.0, 2: 1.0, 3: 1.0} and len(searches) == 5
+    J_after, J_fresh = dict(tracker.metrics["J_after"]), dict(tracker.metrics["J_fresh_start"])
+    assert J_after[1] == searches[0].J_after and 1 not in J_fresh  # no fresh start, no value (NaN is not logged)
+    for trial, (first, second) in zip((2, 3), (searches[1:3], searches[3:5])):
+        assert J_fresh[trial] == second.J_after
+        assert J_after[trial] == min(first.J_after, second.J_after)
+        assert kept[trial] == float(second.J_after < first.J_after)
+        assert dict(tracker.metrics["policy_evaluations"])[trial] == first.evaluations + second.evaluations
