@@ -330,13 +330,14 @@ def sweep_command(
 @click.option("--sweep", "sweeps", multiple=True, metavar="ID", help="Sweep id (repeatable); default: every sweep in the store.")
 @click.option("--out", default="results", show_default=True, type=click.Path(file_okay=False), help="Directory for tables and figures.")
 @click.option("--table1-learner", default="pilco", show_default=True, help="Learner whose runs fill Table 1.")
-@click.option("--fig5-task", default="cartpole", show_default=True, help="Task of the Fig. 5 bar chart.")
+@click.option("--fig5-task", "fig5_tasks", multiple=True, metavar="TASK",
+              help="A task of Fig. 5, a panel each (repeatable); default: cartpole, dmc-cartpole, double-pendulum, unicycle.")
 @click.option("--literature", default=None, type=click.Path(dir_okay=False), help="Sourced literature values for Fig. 5 (default: OUT/literature_fig5.csv if present).")
 @click.option("--include-bench", is_flag=True, help="Also report `harness bench` runs, grouped by configuration as pseudo-sweeps bench-<hash>.")
 @click.option("--publish/--no-publish", default=None,
               help="Write each task's comparison into the store (runs 'comparison · TASK'); default: when --sweep is given.")
 @_guarded
-def report_command(tracking_uri: str | None, sweeps: tuple[str, ...], out: str, table1_learner: str, fig5_task: str,
+def report_command(tracking_uri: str | None, sweeps: tuple[str, ...], out: str, table1_learner: str, fig5_tasks: tuple[str, ...],
                    literature: str | None, include_bench: bool, publish: bool | None) -> None:
     """Comparison tables, Table 1, Fig. 5 and learning curves from MLflow alone (nothing is re-run)."""
     from pathlib import Path
@@ -345,13 +346,14 @@ def report_command(tracking_uri: str | None, sweeps: tuple[str, ...], out: str, 
 
     from harness.errors import MissingArtifactsWarning
     from harness.report import make_report
+    from harness.report.fig5 import FIG5_TASKS
     from harness.store import Store
 
     store = Store(tracking_uri)
     publish = bool(sweeps) if publish is None else publish
     with warnings.catch_warnings(record=True) as caught:
         warnings.simplefilter("always", MissingArtifactsWarning)
-        written = make_report(store, Path(out), list(sweeps) or None, table1_learner, fig5_task,
+        written = make_report(store, Path(out), list(sweeps) or None, table1_learner, fig5_tasks or FIG5_TASKS,
                               Path(literature) if literature else None, include_bench, publish)
     for warning in caught:
         if issubclass(warning.category, MissingArtifactsWarning):

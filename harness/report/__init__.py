@@ -6,9 +6,11 @@ Reads the sweeps' child runs and `harness bench` runs (see :mod:`harness.store.l
   time to success with 95 % stratified-bootstrap CIs, trials to success, wall time, and the bounds
   of the median with the row's stopped runs} (:mod:`~harness.report.comparison`);
 * ``table1.md`` / ``.csv``: the paper's Table 1 (state dimension, trials, experience, policy
-  parameters) measured, median [range], beside the paper's values (:mod:`~harness.report.paper`);
-* ``fig5.png`` / ``fig5.csv``: interaction time to learn cart-pole, log axis, one bar per learner
-  (and literature rows from ``literature_fig5.csv``, each with its source; :mod:`~harness.report.figures`);
+  parameters) measured, median [range], beside the paper's values (:mod:`~harness.report.paper`), and
+  beside SAC and PPO with how many times less interaction PILCO needed (:mod:`~harness.report.baselines`);
+* ``fig5.png`` / ``fig5.csv``: interaction time to success, a panel per task, log axis, every seed
+  a point (unsolved: ``>`` at the interaction consumed), the median marked, the paper's and the
+  literature's values in grey (``literature_fig5.csv``, each with its source; :mod:`~harness.report.fig5`);
 * ``runs_<task>.md`` / ``.csv``: one row per counted run (seed, solved, time to success or the
   interaction at which it stopped unsolved, trials, wall time, stop reason, run id), then the
   runs stopped before their limit, marked as such (in no statistic but the median's bounds;

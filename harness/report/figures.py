@@ -1,4 +1,4 @@
-"""Figures of ``harness report``: Fig. 5 (interaction time to learn, log axis) and learning curves.
+"""Figures of ``harness report``: learning curves, and what every figure draws with (Fig. 5: :mod:`~harness.report.fig5`).
 
 Data first, plot second: every figure is drawn from a table that is also written as CSV, so the
 numbers behind a picture can be checked without reading pixels.
@@ -14,8 +14,6 @@ from pathlib import Path
 from typing import Any
 
 import numpy as np
-
-from harness.statistics import times_with_failures
 
 #: appended to a row label for the runs of that row stopped before their limit (curves, run tables)
 STOPPED_SUFFIX = " (stopped)"
@@ -41,104 +39,6 @@ def _plain_log_ticks(axis, low: float, high: float) -> None:
         axis.set_major_locator(LogLocator(base=10, subs=(1.0, 2.0, 5.0)))
     axis.set_major_formatter(plain)
     axis.set_minor_formatter(plain if span < 12 else NullFormatter())
-
-
-# ---------------------------------------------------------------------------------------------
-# Fig. 5
-# ---------------------------------------------------------------------------------------------
-
-
-def fig5_data(by_label: dict[str, Sequence[Any]], literature: Sequence[dict[str, str]]) -> list[dict[str, Any]]:
-    """Rows for Fig. 5: literature rows (chronological), then one row per learner we ran.
-
-    Ours: median and quartiles of the time to success with unsolved runs as +inf (order
-    statistics, no interpolation), the solved runs' min/max, and the interaction at which the
-    unsolved runs stopped (``censored_at_s``: their maximum, a lower bound for their time).
-    """
-    rows: list[dict[str, Any]] = []
-    for lit in sorted(literature, key=lambda r: (int(r.get("year") or 0), r["method"])):
-        value = float(lit["interaction_seconds"])
-        rows.append({"label": f"{lit['method']} ({lit.get('year', '')})".replace(" ()", ""), "kind": "literature",
-                     "runs": "", "solved": "", "median_s": value, "q25_s": value, "q75_s": value,
-                     "solved_min_s": value, "solved_max_s": value, "censored_at_s": math.nan,
-                     "seed_times_s": "", "source": lit["source"]})
-    for label, runs in by_label.items():
-        times = times_with_failures([r.solved for r in runs], [r.time_to_success for r in runs])
-        solved = times[np.isfinite(times)]
-        unsolved = [r.interaction_seconds for r in runs if not r.solved]
-        rows.append({
-            "label": label, "kind": "ours", "runs": len(runs), "solved": int(solved.size),
-            "median_s": float(np.median(times)),
-            "q25_s": float(np.quantile(times, 0.25, method="lower")),
-            "q75_s": float(np.quantile(times, 0.75, method="higher")),
-            "solved_min_s": float(solved.min()) if solved.size else math.nan,
-            "solved_max_s": float(solved.max()) if solved.size else math.nan,
-            "censored_at_s": max(unsolved) if unsolved else math.nan,
-            "seed_times_s": " ".join("inf" if math.isinf(t) else f"{t:.6g}" for t in times),
-            "source": "this harness (MLflow runs: " + " ".join(r.run_id for r in runs) + ")",
-        })
-    return rows
-
-
-def _median_text(row: dict[str, Any]) -> str:
-    med = row["median_s"]
-    if math.isfinite(med):
-        return f"{med:.3g} s"
-    censored = row["censored_at_s"]
-    return f"> {censored:.3g} s" if isinstance(censored, float) and math.isfinite(censored) else "not reached"
-
-
-def plot_fig5(rows: Sequence[dict[str, Any]], path: Path, task: str) -> Path:
-    """Bars on a log axis: median time to success; whiskers = quartiles; dots = seeds.
-
-    A learner whose median is not reached (at most half of its runs solved) gets a hatched bar
-    up to the interaction its unsolved runs used, labelled ``>``; unsolved seeds are drawn as
-    triangles at that interaction.
-    """
-    plt = _plt()
-    fig, ax = plt.subplots(figsize=(max(5.0, 1.25 * len(rows) + 2.0), 4.8), dpi=120)
-    finite = [v for r in rows for v in (r["median_s"], r["solved_max_s"], r["censored_at_s"]) if isinstance(v, float) and math.isfinite(v)]
-    top = max(finite) if finite else 1.0
-    for i, r in enumerate(rows):
-        ours = r["kind"] == "ours"
-        color = "tab:red" if ours else "0.6"
-        med = r["median_s"]
-        if math.isfinite(med):
-            ax.bar(i, med, color=color, alpha=0.85, width=0.6)
-            if ours:
-                q75 = r["q75_s"] if math.isfinite(r["q75_s"]) else top * 3
-                ax.plot([i, i], [r["q25_s"], q75], color="k", lw=1.2)
-                if not math.isfinite(r["q75_s"]):
-                    ax.annotate("", (i, q75), (i, q75 / 1.6), arrowprops={"arrowstyle": "->", "lw": 1.2})
-        elif ours and math.isfinite(r["censored_at_s"]):
-            ax.bar(i, r["censored_at_s"], color="none", edgecolor=color, hatch="//", width=0.6)
-        if ours:
-            times = [float(t) for t in str(r["seed_times_s"]).split()]
-            jitter = np.linspace(-0.15, 0.15, len(times)) if len(times) > 1 else [0.0]
-            for dx, t in zip(jitter, times):
-                if math.isfinite(t):
-                    ax.plot(i + dx, t, "o", ms=3, color="k")
-                elif math.isfinite(r["censored_at_s"]):
-                    ax.plot(i + dx, r["censored_at_s"], "^", ms=4, mfc="none", color="k")
-    values = [v for r in rows for v in (r["median_s"], r["q25_s"], r["solved_min_s"], r["censored_at_s"]) if isinstance(v, float) and math.isfinite(v) and v > 0]
-    y_low, y_high = min(values, default=1.0) / 3, top * 4
-    ax.set_ylim(y_low, y_high)
-    labels = [textwrap.fill(str(r["label"]), 14) + f"\n{_median_text(r)}" + (f"\n{r['solved']}/{r['runs']} solved" if r["kind"] == "ours" else "")
-              for r in rows]
-    ax.set_xlim(-0.7, max(len(rows), 2) - 0.3)
-    ax.set_xticks(range(len(rows)), labels, fontsize=8)
-    ax.set_yscale("log")
-    _plain_log_ticks(ax.yaxis, y_low, y_high)
-    ax.set_ylabel("interaction time to success [s] (log)")
-    ax.set_title(f"Data efficiency on {task} (cf. ICML 2011 Fig. 5)", fontsize=10)
-    fig.text(0.01, 0.005, "bar: median over seeds (unsolved = ∞); line: 25–75 %; dots: seeds\n"
-             "△ / hatched: unsolved (> interaction used); grey: literature (literature_fig5.csv)", va="bottom", fontsize=6)
-    if not rows:
-        ax.text(0.5, 0.5, f"no runs on {task}", transform=ax.transAxes, ha="center")
-    fig.tight_layout(rect=(0, 0.05, 1, 1))
-    fig.savefig(path)
-    plt.close(fig)
-    return path
 
 
 # ---------------------------------------------------------------------------------------------

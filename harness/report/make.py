@@ -10,6 +10,7 @@ from typing import Any
 import numpy as np
 
 from harness.report import figures
+from harness.report.fig5 import FIG5_FIELDS, FIG5_TASKS, fig5_data, plot_fig5
 from harness.report.comparison import comparison_markdown, comparison_row
 from harness.report.formatting import write_csv
 from harness.report.from_runs import copy_test_histogram, copy_trial_figure, test_markdown, test_rows
@@ -36,7 +37,7 @@ def make_report(
     out: Path,
     sweep_ids: Sequence[str] | None = None,
     table1_learner: str = "pilco",
-    fig5_task: str = "cartpole",
+    fig5_tasks: Sequence[str] = FIG5_TASKS,
     literature: Path | None = None,
     include_bench: bool = False,
     publish: bool | None = None,
@@ -91,9 +92,11 @@ def make_report(
     wrote(None, out / "table1.md", write_csv(out / "table1.csv", flat_table1(t1), TABLE1_FIELDS))
 
     lit = read_literature(literature if literature is not None else out / "literature_fig5.csv")
-    fig5_rows = figures.fig5_data(by_task.get(fig5_task, {}), lit)
-    wrote(fig5_task if fig5_task in of_task else None, write_csv(out / "fig5.csv", fig5_rows),
-          figures.plot_fig5(fig5_rows, out / "fig5.png", fig5_task))
+    fig5_rows = fig5_data(by_task, lit, fig5_tasks)
+    fig5_files = (write_csv(out / "fig5.csv", fig5_rows, FIG5_FIELDS), plot_fig5(fig5_rows, out / "fig5.png", fig5_tasks))
+    wrote(None, *fig5_files)
+    for task in dict.fromkeys(fig5_tasks):
+        of_task.get(task, []).extend(fig5_files)  # published with each task's comparison
 
     for task in tasks:
         curves = {label: [history(r) for r in runs] for label, runs in by_task.get(task, {}).items()}

@@ -10,6 +10,7 @@ from pathlib import Path
 from typing import Any
 
 from harness.errors import HarnessError
+from harness.report.baselines import MODEL_FREE, Outcome, best_outcome, fmt_outcome, outcome, pilco_vs_model_free
 from harness.report.formatting import fmt_range, value_range, fmt_decimal
 from harness.report.records import RunRecord
 
@@ -32,8 +33,16 @@ def table1_rows(runs_by_task: dict[str, dict[str, list[RunRecord]]], learner: st
         for label in labels:
             runs = counted.get(label, [])
             stopped = [r for r in incomplete if r.task == task and r.label == label]
-            rows.append(_table1_row(task, label, runs, stopped))
+            rows.append({**_table1_row(task, label, runs, stopped), **_beside_model_free(runs_by_task.get(task, {}), label, runs)})
     return rows
+
+
+def _beside_model_free(by_label: dict[str, list[RunRecord]], label: str, runs: Sequence[RunRecord]) -> dict[str, Any]:
+    """The row's own :class:`~harness.report.baselines.Outcome` (``None`` without counted runs), each
+    model-free learner's best row on the task (``None``: not run) and the ratio of the medians."""
+    own = outcome(label, runs) if runs else None
+    baselines = {learner: best_outcome(by_label, learner) for learner in MODEL_FREE}
+    return {"outcome": own, "model_free": baselines, "vs_model_free": pilco_vs_model_free(own, list(baselines.values()))}
 
 
 def _table1_row(task: str, label: str, runs: Sequence[RunRecord], stopped: Sequence[RunRecord]) -> dict[str, Any]:
@@ -65,8 +74,15 @@ def table1_markdown(rows: Sequence[dict[str, Any]], learner: str) -> str:
         "Runs stopped before their limit (KILLED or still running, e.g. at the end of a session) are not counted; "
         "they are listed under the table with the trials and interaction they reached, unsolved so far.",
         "",
-        "| task | solved | state space (ours / paper) | # trials (ours / paper) | experience in s (ours / paper) | policy parameters (ours / paper) |",
-        "|---|---|---|---|---|---|",
+        "PILCO beside the model-free baselines: solved/n and the median interaction time to success in s over "
+        "**all** counted runs, unsolved = ∞ (where the median is not reached, ≥ the least interaction an unsolved "
+        "run consumed); SAC and PPO: the learner's best row on the task, \"not run\" without runs. "
+        "PILCO vs best model-free: how many times less interaction PILCO needed than the better of SAC and PPO "
+        "(ratio of the medians).",
+        "",
+        "| task | solved | state space (ours / paper) | # trials (ours / paper) | experience in s (ours / paper) | policy parameters (ours / paper) "
+        "| PILCO (unsolved = ∞) | " + " | ".join(learner.upper() for learner in MODEL_FREE) + " | PILCO vs best model-free |",
+        "|---|---|---|---|---|---|---|" + "---|" * len(MODEL_FREE) + "---|",
     ]
     for r in rows:
         p = r["paper"]
@@ -75,10 +91,10 @@ def table1_markdown(rows: Sequence[dict[str, Any]], learner: str) -> str:
         lines.append(
             f"| {r['task']} ({r['paper_task']}){variant} | {r['solved']}/{r['runs']} | R^{r['state_dim']} / {p['state']} "
             f"| {fmt_range(*r['trials'])} / {p['trials']} | {fmt_range(*r['experience_s'], fmt=fmt_decimal)} / {p['experience']} "
-            f"| {'R^' + fmt_range(*params) if not math.isnan(params[0]) else '–'} / {p['parameters']} |"
+            f"| {'R^' + fmt_range(*params) if not math.isnan(params[0]) else '–'} / {p['parameters']} | {_model_free_cells(r)} |"
         )
     if not rows:
-        lines.append(f"| (no runs of `{learner}` on cartpole, double-pendulum or unicycle in the selected sweeps) | | | | | |")
+        lines.append(f"| (no runs of `{learner}` on cartpole, double-pendulum or unicycle in the selected sweeps) | | | | | |" + " |" * (len(MODEL_FREE) + 2))
     notes = [r for r in rows if r["stopped"]]
     if notes:
         lines += ["", "Stopped before their limit, not solved so far (lower bounds, not results):", ""]
@@ -89,6 +105,22 @@ def table1_markdown(rows: Sequence[dict[str, Any]], learner: str) -> str:
     return "\n".join(lines) + "\n"
 
 
+def _model_free_cells(row: dict[str, Any]) -> str:
+    """The row's cells beside the model-free learners: its own outcome, each learner's, the ratio."""
+    own = fmt_outcome(row["outcome"]) if row["outcome"] is not None else "no counted runs"
+    return " | ".join([own, *(fmt_outcome(row["model_free"][learner]) for learner in MODEL_FREE), row["vs_model_free"]])
+
+
+#: the columns of an outcome in ``table1.csv``, each after the learner's name
+OUTCOME_KEYS = ("runs", "solved", "median_s", "unsolved_min_s")
+
+
+def _flat_outcome(prefix: str, o: Outcome | None) -> dict[str, Any]:
+    """``{prefix}_runs``, ``_solved``, ``_median_s``, ``_unsolved_min_s`` (empty where not run)."""
+    values = (o.runs, o.solved, o.median_s, o.unsolved_min_s) if o is not None else ("",) * 4
+    return {f"{prefix}_{key}": value for key, value in zip(OUTCOME_KEYS, values)}
+
+
 def flat_table1(rows: Sequence[dict[str, Any]]) -> list[dict[str, Any]]:
     out = []
     for r in rows:
@@ -97,6 +129,10 @@ def flat_table1(rows: Sequence[dict[str, Any]]) -> list[dict[str, Any]]:
         for key in ("trials", "experience_s", "policy_parameters", "stopped_episodes", "stopped_interaction_s"):
             flat[f"{key}_median"], flat[f"{key}_min"], flat[f"{key}_max"] = r[key]
         flat.update({f"paper_{k}": v for k, v in r["paper"].items()})
+        flat["all_median_s"] = r["outcome"].median_s if r["outcome"] is not None else ""
+        for learner in MODEL_FREE:
+            flat.update(_flat_outcome(learner, r["model_free"][learner]))
+        flat["pilco_vs_best_model_free"] = r["vs_model_free"]
         out.append(flat)
     return out
 
@@ -104,7 +140,9 @@ def flat_table1(rows: Sequence[dict[str, Any]]) -> list[dict[str, Any]]:
 TABLE1_FIELDS = ["task", "learner", "paper_task", "runs", "solved", "stopped", "state_dim"] + [
     f"{key}_{part}" for key in ("trials", "experience_s", "policy_parameters", "stopped_episodes", "stopped_interaction_s")
     for part in ("median", "min", "max")
-] + ["paper_state", "paper_trials", "paper_experience", "paper_parameters"]
+] + ["paper_state", "paper_trials", "paper_experience", "paper_parameters", "all_median_s"] + [
+    f"{learner}_{key}" for learner in MODEL_FREE for key in OUTCOME_KEYS
+] + ["pilco_vs_best_model_free"]
 
 
 

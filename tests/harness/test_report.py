@@ -3,6 +3,7 @@
 from __future__ import annotations
 
 import csv
+import dataclasses
 import itertools
 import json
 import math
@@ -18,7 +19,8 @@ from harness.errors import HarnessError, MissingArtifactsWarning
 from harness.report.comparison import comparison_markdown, comparison_row
 from harness.report.from_runs import copy_test_histogram, copy_trial_figure, representative_run
 from harness.report.labels import file_slug, label_runs, variant_labels
-from harness.report.paper import read_literature, table1_markdown, table1_rows
+from harness.report.fig5 import fig5_data, fig5_figure, plot_fig5
+from harness.report.paper import TABLE1_FIELDS, flat_table1, read_literature, table1_markdown, table1_rows
 from harness.report.records import RunRecord, record_from_run
 from harness.report.runs_table import run_rows, runs_markdown
 from harness.statistics import bootstrap_ci, iqm, median, median_bounds, stratified_bootstrap, times_with_failures
@@ -297,8 +299,6 @@ def test_table1_measured_beside_the_paper():
     assert "Stopped before their limit" not in md
 
     # a run stopped at the end of a session: not counted, shown as a lower bound under the table
-    import dataclasses
-
     stopped = dataclasses.replace(_record(7, False, interaction=30.0, status="KILLED", task="unicycle", params=22.0), episodes=25.0)
     rows = table1_rows({"cartpole": {"pilco": runs}}, "pilco", [stopped])
     unicycle = rows[-1]
@@ -307,6 +307,70 @@ def test_table1_measured_beside_the_paper():
     md = table1_markdown(rows, "pilco")
     assert "| unicycle (unicycle) | 0/0 | R^4 / R^12 | – / ~ 20 | – / ~ 20-30 s | R^22 [22–22] / R^28 |" in md
     assert "- unicycle: 1 run(s) at 25 [25–25] trials, 30.0 [30.0–30.0] s of interaction" in md
+
+
+def _learner_runs(learner, task, outcomes):
+    """Records of ``learner`` on ``task``: per seed ``(solved, time to success or interaction consumed)``."""
+    return [dataclasses.replace(_record(seed, solved, time if solved else None, 3.0 if solved else None,
+                                        interaction=time, task=task), learner=learner, label=learner)
+            for seed, (solved, time) in enumerate(outcomes)]
+
+
+def _pilco_sac_ppo():
+    """Cart-pole: PILCO, SAC and PPO (PPO never solves); double pendulum: PILCO only; unicycle: PILCO
+    and a SAC that never solves; dmc-cartpole: no runs."""
+    return {
+        "cartpole": {"pilco": _learner_runs("pilco", "cartpole", [(True, 10.0), (True, 20.0), (False, 30.0)]),
+                     "sac": _learner_runs("sac", "cartpole", [(True, 500.0), (True, 900.0), (False, 2e4)]),
+                     "ppo": _learner_runs("ppo", "cartpole", [(False, 2e4), (False, 2e4)])},
+        "double-pendulum": {"pilco": _learner_runs("pilco", "double-pendulum", [(True, 84.0)])},
+        "unicycle": {"pilco": _learner_runs("pilco", "unicycle", [(True, 30.0)]),
+                     "sac": _learner_runs("sac", "unicycle", [(False, 5000.0), (False, 8000.0)])},
+    }
+
+
+def test_table1_sets_pilco_beside_sac_and_ppo():
+    by_task = _pilco_sac_ppo()
+    rows = {r["task"]: r for r in table1_rows(by_task, "pilco")}
+    md = table1_markdown(list(rows.values()), "pilco")
+    assert "| PILCO (unsolved = ∞) | SAC | PPO | PILCO vs best model-free |" in md
+    # ratio of the medians, unsolved = inf: SAC [500, 900, inf] -> 900 s; PILCO [10, 20, inf] -> 20 s
+    ratio = np.median([500.0, 900.0, np.inf]) / np.median([10.0, 20.0, np.inf])
+    assert ratio == 45.0 and rows["cartpole"]["vs_model_free"] == f"{ratio:.1f}× less than sac"
+    assert "| 2/3, 20.0 s | 2/3, 900.0 s | 0/2, ∞ (≥ 20000.0 s) | 45.0× less than sac |" in md
+    assert "| 1/1, 84.0 s | not run | not run | — |" in md  # no baseline ran on the double pendulum
+    never = f"baseline never solved within its budget (≥ 5000.0 s); ≥ {5000.0 / 30.0:.1f}× less"
+    assert f"| 1/1, 30.0 s | 0/2, ∞ (≥ 5000.0 s) | not run | {never} |" in md
+    flat = {r["task"]: r for r in flat_table1(list(rows.values()))}
+    assert set(TABLE1_FIELDS) == set(flat["cartpole"])
+    assert (flat["cartpole"]["sac_solved"], flat["cartpole"]["sac_median_s"], flat["double-pendulum"]["ppo_runs"]) == (2, 900.0, "")
+    assert flat["cartpole"]["pilco_vs_best_model_free"] == "45.0× less than sac"
+    # neither PILCO counted nor a baseline run: a dash
+    stopped = dataclasses.replace(_record(7, False, interaction=30.0, status="KILLED", task="unicycle"), episodes=25.0)
+    (row,) = table1_rows({}, "pilco", [stopped])
+    assert row["vs_model_free"] == "—" and "| no counted runs | not run | not run | — |" in table1_markdown([row], "pilco")
+
+
+def test_fig5_has_a_panel_per_task_with_every_seed(tmp_path):
+    rows = fig5_data(_pilco_sac_ppo(), read_literature(Path(__file__).parents[2] / "results" / "literature_fig5.csv"))
+    fig = fig5_figure(rows)
+    assert [ax.get_title() for ax in fig.axes] == ["cart-pole (cartpole)", "dm_control cart-pole (dmc-cartpole)",
+                                                   "double pendulum (double-pendulum)", "unicycle (unicycle)"]
+    said = [[t.get_text() for t in ax.texts] for ax in fig.axes]
+    assert said == [[], ["no runs"], [], []]
+    cartpole = fig.axes[0]
+    labels = [t.get_text() for t in cartpole.get_yticklabels()]
+    assert "pilco\n2/3 solved, median 20 s" in labels and "ppo\n0/2 solved, median > 20000 s" in labels
+    assert any(label.startswith("GP-MPC") for label in labels)  # the literature, in grey
+    # every seed drawn: a dot at its time to success, an arrow head at the interaction an unsolved one consumed
+    points = [(line.get_marker(), float(np.ravel(line.get_xdata())[0])) for line in cartpole.lines]
+    assert [x for m, x in points if m == "o"] == [10.0, 20.0, 500.0, 900.0]
+    assert [x for m, x in points if m == ">"] == [30.0, 2e4, 2e4, 2e4]
+    assert [x for m, x in points if m == "|"] == [20.0, 900.0]  # the medians reached
+    grey = {r["label"]: r for r in rows if r["task"] == "double-pendulum" and r["kind"] == "paper"}
+    assert (grey["PILCO (paper, Table 1)"]["solved_min_s"], grey["PILCO (paper, Table 1)"]["solved_max_s"]) == (60.0, 90.0)
+    assert {r["task"] for r in rows} == {"cartpole", "double-pendulum", "unicycle"}  # dmc-cartpole: no points, no paper value
+    assert plot_fig5(rows, tmp_path / "fig5.png").stat().st_size > 0
 
 
 def test_sweeps_of_one_learner_are_told_apart_by_the_settings_they_differ_in():
@@ -431,6 +495,7 @@ def test_report_regenerates_tables_and_figures_from_mlflow(swept, tmp_path):
 
     fig5 = read_rows(out / "fig5.csv")
     assert fig5["sweep-steps"]["seed_times_s"] == "4 8 inf" and float(fig5["sweep-steps"]["censored_at_s"]) == 8.0
+    assert fig5["sweep-steps"]["task"] == "sweep-toy" and fig5["sweep-steps"]["seed_interaction_s"] == "4 8 8"
 
     # learning curves: success rate held between hand-overs; seeds 2, 3, 4 succeed from 4 s, from 8 s, never
     with open(out / "curves_sweep-toy.csv") as fh:
