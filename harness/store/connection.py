@@ -80,6 +80,23 @@ def _store_lock(tracking_uri: str):
             fcntl.flock(fh, fcntl.LOCK_UN)
 
 
+def _check_server_listens(tracking_uri: str, timeout: float = 10) -> None:
+    """A :class:`TrackingError` at once if nothing listens at a server URI's address (MLflow's client
+    would retry for minutes before it says so)."""
+    parsed = urlparse(tracking_uri)
+    if parsed.scheme not in ("http", "https") or not parsed.hostname:
+        return
+    import socket
+
+    try:
+        socket.create_connection((parsed.hostname, parsed.port or (443 if parsed.scheme == "https" else 80)), timeout=timeout).close()
+    except OSError as exc:
+        raise TrackingError(
+            f"the tracking server {tracking_uri} does not answer ({exc.strerror or type(exc).__name__}); start it "
+            "(`harness store serve --dir DIR` prints its URI) or pass the right --tracking-uri"
+        ) from None
+
+
 def open_client(tracking_uri: str):
     """An ``MlflowClient`` for ``tracking_uri``; a :class:`TrackingError` with the fix if it fails."""
     quiet_mlflow_logging()
@@ -89,6 +106,7 @@ def open_client(tracking_uri: str):
             f"tracking store directory {db.parent} does not exist or is not writable; "
             "pass --tracking-uri sqlite:////a/writable/path/mlflow.db"
         )
+    _check_server_listens(tracking_uri)
     try:
         import warnings
 
