@@ -1,5 +1,5 @@
 """Concurrent writers on a tracking store: K processes, each logging N metrics with the MLflow client
-(one ``log_metric`` call per write, as a learner's per-trial metrics are written) to (a) the default
+(through :class:`harness.store.Store`: one ``log_batch`` request per write of one metric) to (a) the default
 SQLite store and (b) a served store (``harness store serve``: MLflow on PostgreSQL). Reports writes/s
 over all writers and the p50/p99 latency of one write.
 
@@ -25,28 +25,27 @@ sys.path.insert(0, str(Path(__file__).resolve().parents[1]))
 
 
 def writer(uri: str, experiment_id: str, writes: int, barrier, results) -> None:
-    """One process: a run of its own, then ``writes`` timed ``log_metric`` calls once every writer is ready."""
-    os.environ.setdefault("MLFLOW_ENABLE_ARTIFACTS_PROGRESS_BAR", "false")
-    from mlflow.tracking import MlflowClient
+    """One process: a run of its own, then ``writes`` timed single-metric writes once every writer is ready."""
+    from harness.store import Store
 
-    client = MlflowClient(tracking_uri=uri)
-    run_id = client.create_run(experiment_id).info.run_id
+    store = Store(uri)
+    run_id = store.create_run(experiment_id, f"writer-{os.getpid()}", {})
     barrier.wait()
     latencies = []
     for step in range(writes):
         start = time.perf_counter()
-        client.log_metric(run_id, "load", float(step), step=step)
+        store.log_metrics(run_id, {"load": float(step)}, step=step)
         latencies.append(time.perf_counter() - start)
-    client.set_terminated(run_id)
+    store.set_status(run_id, "FINISHED")
     results.put((time.perf_counter(), latencies))
 
 
 def measure(uri: str, writers: int, writes: int) -> dict[str, float]:
     """``writers`` processes at once on ``uri``: writes/s from the common start to the last writer's end, latencies in ms."""
-    from harness.store.connection import ensure_experiment, open_client
+    from harness.store import Store
 
-    client = open_client(uri)  # creates a fresh SQLite store before the writers open it (no migration race)
-    experiment_id = ensure_experiment(client, f"store-load-{writers}-{time.time_ns()}", uri)
+    # opened here first: a fresh SQLite store is created before the writers open it (no migration race)
+    experiment_id = Store(uri).ensure_experiment(f"store-load-{writers}-{time.time_ns()}")
     ctx = mp.get_context("spawn")
     barrier, results = ctx.Barrier(writers + 1), ctx.Queue()
     processes = [ctx.Process(target=writer, args=(uri, experiment_id, writes, barrier, results)) for _ in range(writers)]
@@ -95,7 +94,7 @@ def main() -> None:
         shutil.rmtree(folder, ignore_errors=True)
 
     lines = [f"    {command_line(__file__)}", "", machine_line(load_at_start), "",
-             f"{args.writes} `log_metric` calls per writer, each writer a process with its own run; writes/s from the "
+             f"{args.writes} writes of one metric (`Store.log_metrics`: one MLflow `log_batch` request) per writer, each writer a process with its own run; writes/s from the "
              "common start to the last writer's end.", "",
              "| store | writers K | writes/s (all writers) | p50 latency per write (ms) | p99 latency per write (ms) |",
              "|---|---|---|---|---|"]

@@ -181,8 +181,9 @@ def bench_command(
 
         _, group = bench_group_of(Store(tracker.tracking_uri, tracker.client).run(result.run_id).params)
         click.echo(f"MLflow run {result.run_id} in experiment '{task}' at {tracker.tracking_uri}")
-        served = tracker.tracking_uri.startswith(("http://", "https://"))
-        click.echo(f"  browse: {tracker.tracking_uri}" if served else f"  browse: mlflow ui --backend-store-uri {tracker.tracking_uri}")
+        from harness.store.connection import browse_command
+
+        click.echo(f"  browse: {browse_command(tracker.tracking_uri)}")
         click.echo(f"  report: harness report --tracking-uri {tracker.tracking_uri} --sweep {group}"
                    "  (the runs of this configuration, all seeds)")
 
@@ -348,6 +349,7 @@ def report_command(tracking_uri: str | None, sweeps: tuple[str, ...], out: str, 
     from harness.errors import MissingArtifactsWarning
     from harness.report import make_report
     from harness.store import Store
+    from harness.store.connection import browse_command
 
     store = Store(tracking_uri)
     publish = bool(sweeps) if publish is None else publish
@@ -364,7 +366,7 @@ def report_command(tracking_uri: str | None, sweeps: tuple[str, ...], out: str, 
         click.echo(str(path))
     if publish:
         click.echo(f"comparisons written into the store: the runs 'comparison · TASK' in each task's experiment "
-                   f"(browse: mlflow ui --backend-store-uri {store.uri})")
+                   f"(browse: {browse_command(store.uri)})")
 
 
 #: the store a `harness store` command works on

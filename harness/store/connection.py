@@ -35,6 +35,11 @@ def resolve_tracking_uri(uri: str | None) -> str:
     return uri or os.environ.get("MLFLOW_TRACKING_URI") or default_tracking_uri()
 
 
+def browse_command(tracking_uri: str) -> str:
+    """How to look at the store: a server's own address (it is the UI), else ``mlflow ui`` on the store."""
+    return tracking_uri if tracking_uri.startswith(("http://", "https://")) else f"mlflow ui --backend-store-uri {tracking_uri}"
+
+
 def sqlite_path(tracking_uri: str) -> Path | None:
     """The database file of a ``sqlite:///`` URI, else ``None``."""
     return Path(tracking_uri[len("sqlite:///"):]) if tracking_uri.startswith("sqlite:///") else None
@@ -132,7 +137,7 @@ def get_run(client, run_id: str, tracking_uri: str):
     try:
         return client.get_run(run_id)
     except Exception as exc:
-        raise TrackingError(f"no run {run_id!r} in {tracking_uri}; check the id (`mlflow ui --backend-store-uri {tracking_uri}` lists runs)") from exc
+        raise TrackingError(f"no run {run_id!r} in {tracking_uri}; check the id (`{browse_command(tracking_uri)}` lists runs)") from exc
 
 
 def artifact_location_for(tracking_uri: str, experiment: str) -> str | None:

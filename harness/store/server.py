@@ -21,7 +21,6 @@ import subprocess
 import sys
 import time
 import urllib.request
-from dataclasses import dataclass
 from pathlib import Path
 
 from harness.errors import TrackingError
@@ -33,27 +32,15 @@ DB_NAME = "mlflow"
 ROOT_RUNS_POSTGRES_AS = "postgres"
 
 
-@dataclass(frozen=True)
 class ServerPaths:
     """Where a served store keeps its parts, all under ``directory``."""
 
-    directory: Path
-
-    @property
-    def cluster(self) -> Path:
-        return self.directory / "postgres"
-
-    @property
-    def postgres_log(self) -> Path:
-        return self.directory / "postgres.log"
-
-    @property
-    def artifacts(self) -> Path:
-        return self.directory / "artifacts"
-
-    @property
-    def mlflow_log(self) -> Path:
-        return self.directory / "mlflow-server.log"
+    def __init__(self, directory: Path) -> None:
+        self.directory = Path(directory)
+        self.cluster = self.directory / "postgres"
+        self.postgres_log = self.directory / "postgres.log"
+        self.artifacts = self.directory / "artifacts"
+        self.mlflow_log = self.directory / "mlflow-server.log"
 
 
 def backend_uri(db_port: int) -> str:
