@@ -5,6 +5,7 @@
     harness sweep --learners L1,L2 --tasks T1,T2 --seeds 0-9 [--executor local|ray] [--workers N] [--set k=v ...]
     harness report [--sweep ID] [--out results/]
     harness store migrate RUN_ID... | --all [--yes]
+    harness store serve [--dir DIR] [--port 5000] [--db-port 5432]
     harness --version
 
 Errors caused by input (unknown plugin or option, bad value, unwritable store, ...) print one
@@ -21,7 +22,7 @@ from typing import Any
 import click
 
 from harness import __version__
-from harness.errors import HarnessError
+from harness.errors import HarnessError, TrackingError
 
 
 class _Context:
@@ -180,7 +181,9 @@ def bench_command(
 
         _, group = bench_group_of(Store(tracker.tracking_uri, tracker.client).run(result.run_id).params)
         click.echo(f"MLflow run {result.run_id} in experiment '{task}' at {tracker.tracking_uri}")
-        click.echo(f"  browse: mlflow ui --backend-store-uri {tracker.tracking_uri}")
+        from harness.store.connection import browse_command
+
+        click.echo(f"  browse: {browse_command(tracker.tracking_uri)}")
         click.echo(f"  report: harness report --tracking-uri {tracker.tracking_uri} --sweep {group}"
                    "  (the runs of this configuration, all seeds)")
 
@@ -348,6 +351,7 @@ def report_command(tracking_uri: str | None, sweeps: tuple[str, ...], out: str, 
     from harness.report import make_report
     from harness.report.fig5 import FIG5_TASKS
     from harness.store import Store
+    from harness.store.connection import browse_command
 
     store = Store(tracking_uri)
     publish = bool(sweeps) if publish is None else publish
@@ -364,7 +368,7 @@ def report_command(tracking_uri: str | None, sweeps: tuple[str, ...], out: str, 
         click.echo(str(path))
     if publish:
         click.echo(f"comparisons written into the store: the runs 'comparison · TASK' in each task's experiment "
-                   f"(browse: mlflow ui --backend-store-uri {store.uri})")
+                   f"(browse: {browse_command(store.uri)})")
 
 
 #: the store a `harness store` command works on
@@ -409,6 +413,39 @@ def store_check_command(tracking_uri: str | None) -> None:
             click.echo(f"  recorded elsewhere: {r.run_id} {r.name}" + (" (its files are in this store's folder)" if r.moved else ""))
         _fail(f"{len(moved)} runs record artifact locations outside the store's folder; "
               f"run `harness store relocate --tracking-uri {store.uri}`", 1)
+
+
+@store_group.command("serve")
+@click.option("--dir", "directory", default="mlflow-server", show_default=True, type=click.Path(file_okay=False),
+              help="The store's folder: PostgreSQL cluster (created if absent), artifacts, logs.")
+@click.option("--port", default=5000, show_default=True, type=click.IntRange(1, 65535), help="Port of the MLflow server.")
+@click.option("--db-port", default=5432, show_default=True, type=click.IntRange(1, 65535), help="Port of PostgreSQL (127.0.0.1 only).")
+@click.option("--host", default="127.0.0.1", show_default=True, help="Address the MLflow server listens on (0.0.0.0: every machine that reaches this one).")
+@click.option("--workers", default=2, show_default=True, type=click.IntRange(min=1), help="MLflow server worker processes.")
+@_guarded
+def store_serve_command(directory: str, port: int, db_port: int, host: str, workers: int) -> None:
+    """Serve a store to many writers: MLflow on PostgreSQL, artifacts through the server; Ctrl-C or `kill PID` stops both."""
+    import time
+    from pathlib import Path
+
+    from harness.store.server import StoreServer
+
+    server = StoreServer(Path(directory), port=port, db_port=db_port, host=host, workers=workers)
+    click.echo(f"starting the store {server.paths.directory} (PostgreSQL on 127.0.0.1:{db_port}, MLflow on {host}:{port}) ...", err=True)
+    try:
+        server.start()
+        shown = server.uri if host not in ("0.0.0.0", "::") else f"http://{os.uname().nodename}:{port}"
+        click.echo(f"tracking URI: {shown}")
+        click.echo(f"  sweep against it: harness sweep --learners pilco --tasks cartpole --seeds 0-9 --executor ray --tracking-uri {shown}")
+        click.echo("  stop: Ctrl-C", err=True)
+        while (problem := server.problem()) is None:
+            time.sleep(1)
+        raise TrackingError(problem)
+    except KeyboardInterrupt:
+        click.echo("stopping the MLflow server and PostgreSQL ...", err=True)
+    finally:
+        server.stop()
+    click.echo(f"stopped; the store is kept in {server.paths.directory}", err=True)
 
 
 @store_group.command("describe")

@@ -35,6 +35,11 @@ def resolve_tracking_uri(uri: str | None) -> str:
     return uri or os.environ.get("MLFLOW_TRACKING_URI") or default_tracking_uri()
 
 
+def browse_command(tracking_uri: str) -> str:
+    """How to look at the store: a server's own address (it is the UI), else ``mlflow ui`` on the store."""
+    return tracking_uri if tracking_uri.startswith(("http://", "https://")) else f"mlflow ui --backend-store-uri {tracking_uri}"
+
+
 def sqlite_path(tracking_uri: str) -> Path | None:
     """The database file of a ``sqlite:///`` URI, else ``None``."""
     return Path(tracking_uri[len("sqlite:///"):]) if tracking_uri.startswith("sqlite:///") else None
@@ -80,6 +85,23 @@ def _store_lock(tracking_uri: str):
             fcntl.flock(fh, fcntl.LOCK_UN)
 
 
+def _check_server_listens(tracking_uri: str, timeout: float = 10) -> None:
+    """A :class:`TrackingError` at once if nothing listens at a server URI's address (MLflow's client
+    would retry for minutes before it says so)."""
+    parsed = urlparse(tracking_uri)
+    if parsed.scheme not in ("http", "https") or not parsed.hostname:
+        return
+    import socket
+
+    try:
+        socket.create_connection((parsed.hostname, parsed.port or (443 if parsed.scheme == "https" else 80)), timeout=timeout).close()
+    except OSError as exc:
+        raise TrackingError(
+            f"the tracking server {tracking_uri} does not answer ({exc.strerror or type(exc).__name__}); start it "
+            "(`harness store serve --dir DIR` prints its URI) or pass the right --tracking-uri"
+        ) from None
+
+
 def open_client(tracking_uri: str):
     """An ``MlflowClient`` for ``tracking_uri``; a :class:`TrackingError` with the fix if it fails."""
     quiet_mlflow_logging()
@@ -89,6 +111,7 @@ def open_client(tracking_uri: str):
             f"tracking store directory {db.parent} does not exist or is not writable; "
             "pass --tracking-uri sqlite:////a/writable/path/mlflow.db"
         )
+    _check_server_listens(tracking_uri)
     try:
         import warnings
 
@@ -114,7 +137,7 @@ def get_run(client, run_id: str, tracking_uri: str):
     try:
         return client.get_run(run_id)
     except Exception as exc:
-        raise TrackingError(f"no run {run_id!r} in {tracking_uri}; check the id (`mlflow ui --backend-store-uri {tracking_uri}` lists runs)") from exc
+        raise TrackingError(f"no run {run_id!r} in {tracking_uri}; check the id (`{browse_command(tracking_uri)}` lists runs)") from exc
 
 
 def artifact_location_for(tracking_uri: str, experiment: str) -> str | None:

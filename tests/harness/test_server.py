@@ -1,0 +1,127 @@
+"""`harness store serve`: MLflow on PostgreSQL with its artifacts served, a bench run written to it and
+read back through the server alone, a clean stop on SIGTERM, and the errors when PostgreSQL stops.
+
+Skipped (visibly) where PostgreSQL's binaries are not on PATH. As root, PostgreSQL runs as the user
+``postgres``, so the store's folder is made in the system temp folder, traversable by every user.
+"""
+
+from __future__ import annotations
+
+import os
+import shutil
+import signal
+import socket
+import tempfile
+from pathlib import Path
+
+import pytest
+from click.testing import CliRunner
+
+from harness.cli import main
+from harness.errors import TrackingError
+from harness.store.server import ServerPaths, postgres_available, postgres_running, stop_postgres
+from tests.processes import HarnessProcess
+
+pytestmark = [
+    pytest.mark.slow,
+    pytest.mark.skipif(not postgres_available(), reason="PostgreSQL binaries (initdb, pg_ctl, postgres) not on PATH"),
+]
+
+
+def free_port() -> int:
+    with socket.socket() as sock:
+        sock.bind(("127.0.0.1", 0))
+        return sock.getsockname()[1]
+
+
+@pytest.fixture
+def store_dir(tmp_path):
+    """A folder for a served store that PostgreSQL (the user ``postgres`` when the tests run as root) can reach."""
+    if os.geteuid() != 0:
+        yield tmp_path / "store"
+        return
+    base = Path(tempfile.mkdtemp(prefix="harness-serve-"))
+    base.chmod(0o755)
+    try:
+        yield base / "store"
+    finally:
+        if (base / "store" / "postgres").exists():
+            stop_postgres(ServerPaths(base / "store"))
+        shutil.rmtree(base, ignore_errors=True)
+
+
+@pytest.fixture
+def serving(store_dir, tmp_path):
+    """A running `harness store serve` process and its tracking URI; stopped (SIGTERM, then PostgreSQL) however the test ends."""
+    port, db_port = free_port(), free_port()
+    proc = HarnessProcess(["store", "serve", "--dir", str(store_dir), "--port", str(port), "--db-port", str(db_port),
+                           "--workers", "1"], tmp_path)
+    try:
+        proc.wait_for("tracking URI: ", timeout=240)
+        yield proc, f"http://127.0.0.1:{port}", ServerPaths(store_dir)
+    finally:
+        if proc.proc.poll() is None:
+            proc.signal(signal.SIGTERM)
+            try:
+                proc.wait(timeout=60)
+            except AssertionError:
+                pass
+        stop_postgres(ServerPaths(store_dir))
+
+
+def test_a_bench_run_on_the_served_store_reads_back_through_the_server_and_sigterm_stops_both(serving, tmp_path, monkeypatch):
+    proc, uri, paths = serving
+    assert f"--executor ray --tracking-uri {uri}" in proc.output()
+    monkeypatch.chdir(tmp_path)  # no local store beside the test: everything goes through the server
+    bench = CliRunner().invoke(main, ["bench", "--learner", "random", "--task", "cartpole", "--seed", "0", "--max-trials", "2",
+                                      "--eval-episodes", "1", "-q", "--tracking-uri", uri])
+    assert bench.exit_code == 0, bench.output
+    assert not (tmp_path / "mlflow.db").exists() and not (tmp_path / "mlruns").exists()
+
+    from harness.report.loading import load
+    from harness.store import Store
+
+    store = Store(uri)
+    data = load(store, include_bench=True)
+    [record] = data.runs
+    assert (record.learner, record.task, record.seed, record.status) == ("random", "cartpole", 0, "FINISHED")
+    run = record.reader
+    assert run.local_root is None  # no shared path: the files come through the server
+    assert set(run.history("interaction_seconds")) == {1, 2}
+    assert run.metric("interaction_seconds_total") == record.interaction_seconds > 0
+    assert {"result.json", "episodes/interaction_episodes.npz"} <= {a.path for a in run.all_artifacts()}
+    import json
+
+    assert json.loads(run.file("result.json").read_text())["run_id"] == record.run_id
+    assert len(run.episodes()) >= 2
+    run.close()
+    assert any(paths.artifacts.rglob("result.json"))  # the server keeps them in the store's folder
+
+    proc.signal(signal.SIGTERM)
+    assert proc.wait(timeout=90) == 0, proc.output()
+    assert "stopped; the store is kept" in proc.output()
+    assert not postgres_running(paths)
+    with pytest.raises(TrackingError, match="does not answer"):
+        Store(uri)
+
+
+def test_postgresql_stopped_under_the_server_ends_it_with_one_line_naming_the_store_and_the_fix(serving):
+    proc, uri, paths = serving
+    stop_postgres(paths)
+    assert proc.wait(timeout=90) == 2, proc.output()
+    last = proc.output().strip().splitlines()[-1]
+    assert last.startswith(f"error: PostgreSQL of the store {paths.directory} stopped") and "harness store serve --dir" in last, last
+    failed = CliRunner().invoke(main, ["bench", "-l", "random", "-t", "cartpole", "--max-trials", "1", "-q", "--tracking-uri", uri])
+    assert failed.exit_code == 2 and f"the tracking server {uri} does not answer" in failed.output, failed.output
+
+
+def test_the_serve_errors_name_the_problem_and_the_fix(tmp_path, monkeypatch):
+    with socket.socket() as busy:
+        busy.bind(("127.0.0.1", 0))
+        busy.listen()
+        port = busy.getsockname()[1]
+        result = CliRunner().invoke(main, ["store", "serve", "--dir", str(tmp_path / "s"), "--port", str(port)])
+        assert result.exit_code == 2 and f"port {port} on 127.0.0.1 (the MLflow server) is busy; pass another with --port" in result.output
+    monkeypatch.setenv("PATH", str(tmp_path))  # no PostgreSQL binaries
+    result = CliRunner().invoke(main, ["store", "serve", "--dir", str(tmp_path / "s")])
+    assert result.exit_code == 2 and "PostgreSQL's initdb is not on PATH; install PostgreSQL" in result.output, result.output
