@@ -310,6 +310,8 @@ def sweep_command(
     progress = SilentSweepProgress() if quiet else RichSweepProgress()
     result = run_sweep(spec, tracking_uri=tracking_uri, executor=executor, workers=workers, address=address, progress=progress)
     if quiet:
+        for retry in result.retries:
+            click.echo(retry.line())
         for outcome in result.outcomes:
             click.echo(outcome.line())
     counts = {s: len(result.with_status(s)) for s in ("finished", "skipped", "failed", "stopped")}

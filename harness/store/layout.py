@@ -65,6 +65,12 @@ NOTE_TAG = "mlflow.note.content"
 #: sweep parents: cells of the sweep in the parent's task, and how they ended (also logged as metrics)
 CELL_COUNT_TAGS = ("harness.cells_total", "harness.cells_finished", "harness.cells_failed", "harness.cells_stopped")
 EXECUTOR_TAG = "harness.last_executor"
+#: sweep cells run by Ray: the Ray node that last ran the cell (set when its run starts or resumes)
+NODE_TAG = "harness.ray_node"
+#: sweep parents: cells whose worker was lost (its process or node died) and that ran again, resuming
+#: their run (also logged as a metric), and one line per such retry (cell, node, error, run)
+RETRIED_TAG = "harness.cells_retried"
+RETRIES_TAG = "harness.cell_retries"
 
 # ---- metrics (the runner's; a learner's own are declared by the learner) -------------------------
 

@@ -68,6 +68,16 @@ def _single_thread() -> None:
     single_threaded()
 
 
+def _node_tag() -> dict[str, str]:
+    """``{NODE_TAG: node id}`` in a Ray worker (the driver names the node of a lost cell), else empty."""
+    import sys
+
+    ray = sys.modules.get("ray")
+    if ray is None or not ray.is_initialized():
+        return {}
+    return {layout.NODE_TAG: ray.get_runtime_context().get_node_id()}
+
+
 def run_cell(job: CellJob) -> CellOutcome:
     """Run one cell as a child of its task's sweep parent run; never raises for a failing learner
     (SIGTERM to the worker raises ``KeyboardInterrupt``: the runner marks the child KILLED;
@@ -86,7 +96,11 @@ def run_cell(job: CellJob) -> CellOutcome:
 
         def start(self, experiment, run_name, params, tags):
             return super().start(experiment, run_name, {**params, **job.extra_params},
-                                 {**tags, layout.SWEEP_TAG: job.sweep_id, layout.ROLE_TAG: layout.ROLE_CELL})
+                                 {**tags, layout.SWEEP_TAG: job.sweep_id, layout.ROLE_TAG: layout.ROLE_CELL, **_node_tag()})
+
+        def resume(self, run_id):
+            super().resume(run_id)
+            self.set_tags(_node_tag())
 
     cell = job.cell
     config = RunConfig(cell.learner, cell.task, cell.seed, dict(job.learner_options), dict(job.task_options),

@@ -6,7 +6,7 @@ from __future__ import annotations
 import json
 import time
 from collections import deque
-from dataclasses import dataclass, field
+from dataclasses import dataclass, field, replace
 from typing import Any
 
 from harness.errors import OptionError
@@ -18,6 +18,27 @@ from harness.sweep.progress import SilentSweepProgress, SweepProgress, TrialWatc
 from harness.sweep.spec import Cell, SweepSpec, format_seeds, validate
 
 
+#: times a cell whose worker was lost (its process or its Ray node died) runs again in one invocation
+MAX_CELL_RETRIES = 2
+
+
+@dataclass(frozen=True)
+class CellRetry:
+    """A cell run again after its worker was lost: where (``node``: the Ray node id, if known), why,
+    and the run it resumes (``None``: the worker died before its run existed) after ``trials`` stored trials."""
+
+    cell: Cell
+    error: str
+    run_id: str | None
+    node: str | None
+    trials: int
+
+    def line(self) -> str:
+        where = f" on node {self.node}" if self.node else ""
+        then = f"resumed run {self.run_id} after trial {self.trials}" if self.run_id else "started again"
+        return f"{self.cell.label}: worker lost{where} ({self.error}); {then}"
+
+
 @dataclass
 class SweepResult:
     sweep_id: str
@@ -27,6 +48,8 @@ class SweepResult:
     outcomes: list[CellOutcome]
     #: cells left unstarted by a stop request (``kill -USR1`` to the driver)
     unstarted: list[Cell] = field(default_factory=list)
+    #: cells run again because their worker was lost, in the order it happened
+    retries: list[CellRetry] = field(default_factory=list)
 
     @property
     def not_started(self) -> int:
@@ -114,13 +137,28 @@ def _record_failed_child(store: Store, job: CellJob, error: str) -> str:
 def _mark_crashed(store: Store, job: CellJob, error: str) -> str:
     """The child a dead worker left RUNNING is marked KILLED with the error (the next invocation
     continues it from its last checkpoint); without one, a FAILED child records the error."""
+    run_id = _mark_lost(store, job, error)
+    return _record_failed_child(store, job, error) if run_id is None else run_id
+
+
+def _mark_lost(store: Store, job: CellJob, error: str) -> str | None:
+    """The child a dead worker left RUNNING, marked KILLED (resumable) with the error; ``None`` if there is none."""
     run_id = _running_child(store, job)
-    if run_id is None:
-        return _record_failed_child(store, job, error)
-    store.set_tags(run_id, {layout.ERROR_TAG: error, layout.RESUMABLE_TAG: "true",
-                            layout.NOTE_TAG: f"**Stopped before its limit**: {error}. **Resumable**: the same sweep command continues it."})
-    store.set_status(run_id, "KILLED")
+    if run_id is not None:
+        store.set_tags(run_id, {layout.ERROR_TAG: error, layout.RESUMABLE_TAG: "true",
+                                layout.NOTE_TAG: f"**Stopped before its limit**: {error}. **Resumable**: the same sweep command continues it."})
+        store.set_status(run_id, "KILLED")
     return run_id
+
+
+def _retry_lost(store: Store, job: CellJob, error: str) -> tuple[CellJob, CellRetry]:
+    """The job that runs a cell whose worker was lost again, resuming the run the worker left (if any)."""
+    run_id = _mark_lost(store, job, error)
+    node, trials = None, 0
+    if run_id is not None:
+        run = store.run(run_id)
+        node, trials = run.tags.get(layout.NODE_TAG), len(run.history(layout.INTERACTION_SECONDS))
+    return replace(job, resume_run_id=run_id or job.resume_run_id), CellRetry(job.cell, error, run_id, node, trials)
 
 
 def _running_child(store: Store, job: CellJob) -> str | None:
@@ -214,6 +252,7 @@ def _drive(pool: pools.Pool, jobs: deque, workers: int, result: SweepResult, sto
     returns when they have, leaving the cells not started in ``jobs``."""
     inflight: dict[Any, tuple[CellJob, float]] = {}
     durations: list[float] = []
+    retried: dict[Cell, int] = {}
     draining = False
 
     def report() -> None:
@@ -242,9 +281,17 @@ def _drive(pool: pools.Pool, jobs: deque, workers: int, result: SweepResult, sto
                 job, t0 = inflight.pop(handle)
                 try:
                     outcome = pool.result(handle)
-                except Exception as exc:  # the worker process itself died (crash, out of memory, killed)
-                    cause = str(exc) if isinstance(exc, pools.WorkerProcessDied) else f"{type(exc).__name__}: {exc}"
-                    error = f"worker process died ({cause}); re-run the sweep to retry".splitlines()[0]
+                except Exception as exc:  # the worker process itself died (crash, out of memory, killed, its node lost)
+                    cause = (str(exc) if isinstance(exc, pools.WorkerProcessDied) else f"{type(exc).__name__}: {exc}").splitlines()[0]
+                    if pool.lost(exc) and retried.get(job.cell, 0) < MAX_CELL_RETRIES and not draining:
+                        retried[job.cell] = retried.get(job.cell, 0) + 1
+                        again, retry = _retry_lost(store, job, f"worker process died ({cause[:300]})")
+                        result.retries.append(retry)
+                        progress.cell_retried(retry)
+                        jobs.appendleft(again)
+                        continue
+                    tries = f" (ran {retried[job.cell] + 1} times)" if job.cell in retried else ""
+                    error = f"worker process died ({cause}){tries}; re-run the sweep to retry"
                     outcome = CellOutcome(job.cell, "failed", _mark_crashed(store, job, error), error=error)
                 if outcome.status == "failed" and outcome.run_id is None:
                     outcome.run_id = _record_failed_child(store, job, outcome.error)
@@ -276,8 +323,11 @@ def _close_parents(store: Store, spec: SweepSpec, result: SweepResult, executor:
         own = status
         if status == "FINISHED":
             own = "KILLED" if of["stopped"] or unstarted else "FAILED" if of["failed"] else "FINISHED"
+        retries = [r.line() for r in result.retries if r.cell.task in tasks]
+        counts[layout.RETRIED_TAG] = len(retries)
         try:
-            store.set_tags(parent_run_id, {**counts, layout.EXECUTOR_TAG: executor})
+            store.set_tags(parent_run_id, {**counts, layout.EXECUTOR_TAG: executor,
+                                           **({layout.RETRIES_TAG: "\n".join(retries)[:5000]} if retries else {})})
             store.log_metrics(parent_run_id, {key.split(".", 1)[1]: float(n) for key, n in counts.items()})
         finally:
             store.set_status(parent_run_id, own)

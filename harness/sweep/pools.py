@@ -41,6 +41,11 @@ class Pool(Protocol):
 
     def close(self, cancel: bool) -> None: ...
 
+    def lost(self, exc: BaseException) -> bool:
+        """Whether ``exc`` (raised by :meth:`result`) says the cell's worker was lost (its process or
+        its node died): the driver runs such a cell again, resuming its run from its last checkpoint."""
+        ...
+
 
 class WorkerProcessDied(RuntimeError):
     """A cell's process ended (crash, out of memory, killed) without handing back its outcome."""
@@ -109,6 +114,9 @@ class LocalPool:
         self._running.remove(handle)
         return handle.outcome()
 
+    def lost(self, exc: BaseException) -> bool:
+        return isinstance(exc, WorkerProcessDied)
+
     def request_stop(self) -> None:
         """Ask every running cell to stop after its trial in progress (:data:`~harness.interrupts.STOP_AFTER_TRIAL`)."""
         for handle in self._running:
@@ -137,7 +145,11 @@ WORKER_STOP_SECONDS = 60.0
 
 
 class RayPool:
-    """Ray tasks (``num_cpus=1``, ``max_calls=1``) on an embedded instance or a cluster."""
+    """Ray tasks (``num_cpus=1``, ``max_calls=1``) on an embedded instance or a cluster.
+
+    Ray does not retry a cell itself (``max_retries=0``): its retry would start the cell afresh in a
+    new run, leaving the dead worker's run RUNNING; the driver's retry resumes that run instead.
+    """
 
     def __init__(self, workers: int | None, address: str | None) -> None:
         import logging
@@ -160,7 +172,7 @@ class RayPool:
                 else:
                     ray.init(address=address, log_to_driver=False, logging_level=logging.WARNING)
         self.workers = workers or max(1, int(ray.cluster_resources().get("CPU", 1)))
-        self._remote = ray.remote(num_cpus=1, max_calls=1)(run_cell)
+        self._remote = ray.remote(num_cpus=1, max_calls=1, max_retries=0)(run_cell)
 
     def submit(self, job: CellJob):
         ref = self._remote.remote(job)
@@ -173,6 +185,12 @@ class RayPool:
 
     def result(self, handle) -> CellOutcome:
         return self._ray.get(handle)
+
+    def lost(self, exc: BaseException) -> bool:
+        from ray import exceptions
+
+        return isinstance(exc, (exceptions.WorkerCrashedError, exceptions.NodeDiedError, exceptions.LocalRayletDiedError,
+                                exceptions.ObjectLostError))
 
     def request_stop(self) -> None:
         """Nothing to pass on: Ray tasks cannot be signalled, so the running cells finish their runs

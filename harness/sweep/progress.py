@@ -13,7 +13,7 @@ from harness.sweep.cell import CellOutcome
 
 if TYPE_CHECKING:
     from harness.store import Store
-    from harness.sweep.driver import SweepResult
+    from harness.sweep.driver import CellRetry, SweepResult
 
 
 class SweepProgress(Protocol):
@@ -22,6 +22,8 @@ class SweepProgress(Protocol):
     def update(self, done: int, running: int, failed: int, eta_seconds: float | None) -> None: ...
 
     def cell_done(self, outcome: CellOutcome) -> None: ...
+
+    def cell_retried(self, retry: CellRetry) -> None: ...
 
     def trial(self, label: str, learner: str, record: dict[str, float]) -> None: ...
 
@@ -36,6 +38,9 @@ class SilentSweepProgress:
         pass
 
     def cell_done(self, outcome: CellOutcome) -> None:
+        pass
+
+    def cell_retried(self, retry: CellRetry) -> None:
         pass
 
     def trial(self, label: str, learner: str, record: dict[str, float]) -> None:
@@ -84,6 +89,9 @@ class RichSweepProgress:
     def cell_done(self, outcome: CellOutcome) -> None:
         style = {"failed": "red", "stopped": "yellow"}.get(outcome.status, "")
         self.console.print(outcome.line(), style=style, soft_wrap=True)
+
+    def cell_retried(self, retry: CellRetry) -> None:
+        self.console.print(retry.line(), style="yellow", soft_wrap=True)
 
     def trial(self, label: str, learner: str, record: dict[str, float]) -> None:
         from harness.learner_logs import declared_logs

@@ -131,6 +131,9 @@ class InlinePool:
     def result(self, handle):
         return handle.result()
 
+    def lost(self, exc) -> bool:
+        return False
+
     def close(self, cancel: bool) -> None:
         pass
 

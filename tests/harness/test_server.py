@@ -7,66 +7,21 @@ Skipped (visibly) where PostgreSQL's binaries are not on PATH. As root, PostgreS
 
 from __future__ import annotations
 
-import os
-import shutil
 import signal
 import socket
-import tempfile
-from pathlib import Path
 
 import pytest
 from click.testing import CliRunner
 
 from harness.cli import main
 from harness.errors import TrackingError
-from harness.store.server import ServerPaths, postgres_available, postgres_running, stop_postgres
-from tests.processes import HarnessProcess
+from harness.store.server import postgres_available, postgres_running, stop_postgres
+from tests.harness.served_store import serving, store_dir  # noqa: F401 (fixtures)
 
 pytestmark = [
     pytest.mark.slow,
     pytest.mark.skipif(not postgres_available(), reason="PostgreSQL binaries (initdb, pg_ctl, postgres) not on PATH"),
 ]
-
-
-def free_port() -> int:
-    with socket.socket() as sock:
-        sock.bind(("127.0.0.1", 0))
-        return sock.getsockname()[1]
-
-
-@pytest.fixture
-def store_dir(tmp_path):
-    """A folder for a served store that PostgreSQL (the user ``postgres`` when the tests run as root) can reach."""
-    if os.geteuid() != 0:
-        yield tmp_path / "store"
-        return
-    base = Path(tempfile.mkdtemp(prefix="harness-serve-"))
-    base.chmod(0o755)
-    try:
-        yield base / "store"
-    finally:
-        if (base / "store" / "postgres").exists():
-            stop_postgres(ServerPaths(base / "store"))
-        shutil.rmtree(base, ignore_errors=True)
-
-
-@pytest.fixture
-def serving(store_dir, tmp_path):
-    """A running `harness store serve` process and its tracking URI; stopped (SIGTERM, then PostgreSQL) however the test ends."""
-    port, db_port = free_port(), free_port()
-    proc = HarnessProcess(["store", "serve", "--dir", str(store_dir), "--port", str(port), "--db-port", str(db_port),
-                           "--workers", "1"], tmp_path)
-    try:
-        proc.wait_for("tracking URI: ", timeout=240)
-        yield proc, f"http://127.0.0.1:{port}", ServerPaths(store_dir)
-    finally:
-        if proc.proc.poll() is None:
-            proc.signal(signal.SIGTERM)
-            try:
-                proc.wait(timeout=60)
-            except AssertionError:
-                pass
-        stop_postgres(ServerPaths(store_dir))
 
 
 def test_a_bench_run_on_the_served_store_reads_back_through_the_server_and_sigterm_stops_both(serving, tmp_path, monkeypatch):

@@ -55,6 +55,14 @@ def test_a_dying_cell_process_is_reported_and_the_sweep_goes_on(plugins, mlflow_
     crashed = Store(mlflow_uri).run(outcome["sweep-crash"].run_id)  # the run the dead worker had started
     assert crashed.status == "KILLED" and crashed.tags["harness.error"].startswith("worker process died")
     assert crashed.metrics["interaction_seconds"] == 4.0  # its first hand-over was logged before the crash
+    # the driver ran the lost cell again twice (the learner cannot resume: afresh each time), then gave up
+    assert "(ran 3 times)" in outcome["sweep-crash"].error
+    assert [(r.cell.learner, r.node) for r in result.retries] == [("sweep-crash", None)] * 2
+    assert all(r.run_id is not None and r.trials == 1 for r in result.retries)
+    assert len(children_by_cell(mlflow_uri, result)[("sweep-crash", 2)]) == 3
+    parent = Store(mlflow_uri).run(next(iter(result.parents.values()))[1])
+    assert parent.tags["harness.cells_retried"] == "2" and parent.metrics["cells_retried"] == 2
+    assert parent.tags["harness.cell_retries"].count("sweep-crash-sweep-toy-s2: worker lost (worker process died") == 2
 
 
 def test_sigterm_to_the_driver_stops_the_workers_and_marks_the_runs_killed(plugins, mlflow_uri, tmp_path):
