@@ -163,10 +163,11 @@ def _task_objective(task: str, options: dict, n: int, horizon: int):
     ("cartpole", {}, 60, 30),
 ])
 def test_objective_is_the_same_with_either_kernel(task, options, n, horizon) -> None:
-    """The dynamics GP's contraction, torch or numba: J to 1e-10 and dJ to 2e-7 relative, and dJ's
-    difference at most a fifth of the objective's own change when theta moves by 1-2 ulps (two
-    implementations that round differently cannot agree more closely than that) or 1e-12; 2 threads give
-    exactly the 1-thread result. (benchmarks/compare_objective.py checks the issue's 1e-7 at the
+    """The dynamics GP's contraction, torch or numba: J to 1e-10 relative or, where J's own change for
+    a 1-2 ulp move of theta is larger than that, to a fifth of that change (double pendulum here:
+    1.04e-10 apart on an AVX-512 machine, against an own change of 4.5e-9); dJ to 2e-7 relative and to
+    a fifth of its own 1-2 ulp change or 1e-12 (two implementations that round differently cannot
+    agree more closely than that); 2 threads give exactly the 1-thread result. (benchmarks/compare_objective.py checks the issue's 1e-7 at the
     benchmark sizes.)"""
     from plugins.pilco.moments import MomentMatchingGP
 
@@ -179,8 +180,8 @@ def test_objective_is_the_same_with_either_kernel(task, options, n, horizon) -> 
     (J_t, g_t), (J_n, g_n), (J_2, g_2) = results.values()
     nudged = theta * (1 + np.finfo(float).eps * np.random.default_rng(0).choice([-2.0, -1.0, 1.0, 2.0], theta.shape))
     obj.dynamics = MomentMatchingGP(obj.posterior, kernel="torch")
-    _, g_ulp = obj(nudged)
-    assert abs(J_n - J_t) <= 1e-10 * abs(J_t)
+    J_ulp, g_ulp = obj(nudged)
+    assert abs(J_n - J_t) <= max(1e-10 * abs(J_t), 0.2 * abs(J_ulp - J_t))
     assert np.linalg.norm(g_n - g_t) <= 2e-7 * np.linalg.norm(g_t)
     assert np.linalg.norm(g_n - g_t) <= max(0.2 * np.linalg.norm(g_ulp - g_t), 1e-12 * np.linalg.norm(g_t))
     assert J_2 == J_n and np.array_equal(g_2, g_n)
