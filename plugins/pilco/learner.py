@@ -430,16 +430,14 @@ class Pilco(Learner):
                 )
                 previous = objective.get_flat()
                 try:
-                    # the numba contraction runs its own threads; everything else in J is small
-                    with torch_threads(1 if kernel == "numba" else threads):
-                        search = optimise_policy(objective, self.preset.policy_max_iterations, self.preset.policy_max_evaluations)
+                    search = self._search(objective, kernel, threads)
                     failed = 0.0
                 except NumericalError:
                     objective.set_flat(previous)  # keep the previous policy, say so in the metrics
                     search, failed = None, 1.0
                 fresh = None
-                if search is not None and stalled(search.J_after, last_J, _predicted_sum(predicted), _realised_sum(interaction, predicted),
-                                                  o["fresh_start_tol"]):
+                if o["fresh_start_tol"] is not None and search is not None and stalled(
+                        search.J_after, last_J, _predicted_sum(predicted), _realised_sum(interaction, predicted), o["fresh_start_tol"]):
                     search, fresh = self._fresh_start(objective, controller, search, trial, kernel, threads)
                 try:
                     predicted = objective.predicted_costs()
@@ -471,6 +469,12 @@ class Pilco(Learner):
         finally:
             shutil.rmtree(workdir, ignore_errors=True)
 
+    def _search(self, objective: PolicyObjective, kernel: str, threads: int):
+        """One policy search from the controller's current parameters within the preset's budgets."""
+        # the numba contraction runs its own threads; everything else in J is small
+        with torch_threads(1 if kernel == "numba" else threads):
+            return optimise_policy(objective, self.preset.policy_max_iterations, self.preset.policy_max_evaluations)
+
     def _fresh_start(self, objective: PolicyObjective, controller: SquashedController, search, trial: int, kernel: str,
                      threads: int) -> tuple[Any, dict[str, Any]]:
         """A second policy search from fresh initial parameters (seeded by run seed and trial); the
@@ -480,8 +484,7 @@ class Pilco(Learner):
         generator = torch.Generator().manual_seed(1_000_003 * (self.seed + 1) + trial)
         controller.load_state_dict(self._new_controller(generator).state_dict())  # copied onto the controller's device
         try:
-            with torch_threads(1 if kernel == "numba" else threads):
-                second = optimise_policy(objective, self.preset.policy_max_iterations, self.preset.policy_max_evaluations)
+            second = self._search(objective, kernel, threads)
         except NumericalError:
             objective.set_flat(kept_theta)
             return search, {"J": math.nan, "kept": False}

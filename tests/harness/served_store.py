@@ -78,20 +78,42 @@ def store_dir(tmp_path):
         shutil.rmtree(base, ignore_errors=True)
 
 
+class ServedStore:
+    """`harness store serve` on one store folder and fixed ports, started and stopped (SIGTERM) as often
+    as a test needs: a restart serves the same store at the same URI."""
+
+    def __init__(self, store_dir: Path, log_dir: Path) -> None:
+        port, db_port = free_port(), free_port()
+        self.args = ["store", "serve", "--dir", str(store_dir), "--port", str(port), "--db-port", str(db_port), "--workers", "1"]
+        self.uri = f"http://127.0.0.1:{port}"
+        self.paths = ServerPaths(store_dir)
+        self.log_dir = log_dir
+        self.proc: HarnessProcess | None = None
+
+    def start(self) -> HarnessProcess:
+        """Start serving and return once the tracking URI is printed."""
+        self.proc = HarnessProcess(self.args, self.log_dir)
+        self.proc.wait_for("tracking URI: ", timeout=240)
+        return self.proc
+
+    def stop(self, timeout: float = 90) -> int | None:
+        """SIGTERM the running server and its exit code (``None`` if it was not running)."""
+        if self.proc is None or self.proc.proc.poll() is not None:
+            return None
+        self.proc.signal(signal.SIGTERM)
+        return self.proc.wait(timeout=timeout)
+
+
 @pytest.fixture
 def serving(store_dir, tmp_path):
     """A running `harness store serve` process and its tracking URI; stopped (SIGTERM, then PostgreSQL) however the test ends."""
-    port, db_port = free_port(), free_port()
-    proc = HarnessProcess(["store", "serve", "--dir", str(store_dir), "--port", str(port), "--db-port", str(db_port),
-                           "--workers", "1"], tmp_path)
+    served = ServedStore(store_dir, tmp_path)
     try:
-        proc.wait_for("tracking URI: ", timeout=240)
-        yield proc, f"http://127.0.0.1:{port}", ServerPaths(store_dir)
+        proc = served.start()
+        yield proc, served.uri, served.paths
     finally:
-        if proc.proc.poll() is None:
-            proc.signal(signal.SIGTERM)
-            try:
-                proc.wait(timeout=60)
-            except AssertionError:
-                pass
-        stop_postgres(ServerPaths(store_dir))
+        try:
+            served.stop(timeout=60)
+        except AssertionError:
+            pass
+        stop_postgres(served.paths)

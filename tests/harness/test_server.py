@@ -86,45 +86,35 @@ def test_a_run_outlives_a_restart_of_the_tracking_server(store_dir, tmp_path):  
     """The tracking server stopped (SIGTERM: MLflow and PostgreSQL) and started again on the same store
     while a PILCO run writes to it: the run's writes wait with MLflow's back-off and the run finishes,
     every trial logged once, in the same run."""
-    from tests.harness.served_store import free_port
+    from tests.harness.served_store import ServedStore
     from tests.processes import HarnessProcess
 
-    port, db_port = free_port(), free_port()
-    serve_args = ["store", "serve", "--dir", str(store_dir), "--port", str(port), "--db-port", str(db_port), "--workers", "1"]
-    uri = f"http://127.0.0.1:{port}"
-    server = HarnessProcess(serve_args, tmp_path)
+    served = ServedStore(store_dir, tmp_path)
     bench = None
     try:
-        server.wait_for("tracking URI: ", timeout=240)
+        served.start()
         bench = HarnessProcess(["bench", "--learner", "pilco", "--task", "cartpole", "--seed", "0", "--max-trials", "4",
                                 "--eval-episodes", "1", "--set", "learner.num_centres=3", "--set", "learner.policy_max_evaluations=3",
                                 "--set", "learner.gp_max_evals=10", "--set", "learner.plots=false", "--set", "task.horizon=10",
-                                "--tracking-uri", uri], tmp_path)
+                                "--tracking-uri", served.uri], tmp_path)
         bench.wait_for("trial 1/4", timeout=240)
-        server.signal(signal.SIGTERM)
-        assert server.wait(timeout=90) == 0, server.output()
+        assert served.stop() == 0, served.proc.output()
         assert bench.proc.poll() is None and "trial 4/4" not in bench.output()  # the outage falls inside the run
-        server = HarnessProcess(serve_args, tmp_path)
-        server.wait_for("tracking URI: ", timeout=240)
+        served.start()
         assert bench.wait(timeout=600) == 0, bench.output()
     finally:
         if bench is not None and bench.proc.poll() is None:
             bench.stop()
-        if server.proc.poll() is None:
-            server.signal(signal.SIGTERM)
-            server.wait(timeout=90)
+        served.stop()
     assert "trial 4/4" in bench.output()
 
+    from harness.report.loading import load
     from harness.store import Store
 
-    server = HarnessProcess(serve_args, tmp_path)  # read the run back from the restarted store
+    served.start()  # read the run back from the restarted store
     try:
-        server.wait_for("tracking URI: ", timeout=240)
-        from harness.report.loading import load
-
-        [record] = load(Store(uri), include_bench=True).runs
+        [record] = load(Store(served.uri), include_bench=True).runs
         assert record.status == "FINISHED" and record.reader.history("interaction_seconds") == {1: 1.0, 2: 2.0, 3: 3.0, 4: 4.0}
         record.reader.close()
     finally:
-        server.signal(signal.SIGTERM)
-        server.wait(timeout=90)
+        served.stop()
