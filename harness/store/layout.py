@@ -71,6 +71,9 @@ NODE_TAG = "harness.ray_node"
 #: their run (also logged as a metric), and one line per such retry (cell, node, error, run)
 RETRIED_TAG = "harness.cells_retried"
 RETRIES_TAG = "harness.cell_retries"
+#: sweep parents: ``<prefix><cell label>`` holds the token of the one worker allowed to write the
+#: cell's run (:mod:`harness.sweep.lease`)
+LEASE_TAG_PREFIX = "harness.lease."
 
 # ---- metrics (the runner's; a learner's own are declared by the learner) -------------------------
 

@@ -31,6 +31,8 @@ class CellJob:
     extra_params: dict[str, Any] = field(default_factory=dict)
     #: an interrupted child of this cell to continue from its last checkpoint
     resume_run_id: str | None = None
+    #: this submission's lease on the cell (:mod:`harness.sweep.lease`; ``None``: unchecked)
+    lease: str | None = None
 
 
 @dataclass
@@ -38,7 +40,7 @@ class CellOutcome:
     """How one cell ended in this invocation (``skipped``: it had a FINISHED child already)."""
 
     cell: Cell
-    status: Literal["finished", "failed", "skipped", "stopped"]
+    status: Literal["finished", "failed", "skipped", "stopped", "superseded"]
     run_id: str | None
     solved: bool = False
     interaction_time_to_success: float | None = None
@@ -52,6 +54,8 @@ class CellOutcome:
         head = f"{self.cell.label}" + (" (resumed from its checkpoint)" if self.resumed else "")
         if self.status == "failed":
             return f"{head}: FAILED ({self.error})"
+        if self.status == "superseded":
+            return f"{head}: given to another worker ({self.error})"
         if self.status == "skipped":
             return f"{head}: already finished (run {self.run_id})"
         if self.status == "stopped":
@@ -89,18 +93,42 @@ def run_cell(job: CellJob) -> CellOutcome:
     from harness.progress import SilentProgress
     from harness.runner import RunConfig, run
     from harness.store import Store
+    from harness.sweep.lease import LeaseCheck, LeaseLost
     from harness.tracking import MlflowTracker
 
     class CellTracker(MlflowTracker):
-        """Adds the sweep's tags and params to the child run the runner starts."""
+        """Adds the sweep's tags and params to the child run the runner starts, and writes nothing
+        once the cell's lease has moved on to another worker (:mod:`harness.sweep.lease`)."""
+
+        def __init__(self, *args, **kwargs):
+            super().__init__(*args, **kwargs)
+            self.holds_lease = LeaseCheck(self, job.parent_run_id, job.cell, job.lease)
 
         def start(self, experiment, run_name, params, tags):
+            self.holds_lease("start its run")
             return super().start(experiment, run_name, {**params, **job.extra_params},
                                  {**tags, layout.SWEEP_TAG: job.sweep_id, layout.ROLE_TAG: layout.ROLE_CELL, **_node_tag()})
 
         def resume(self, run_id):
+            self.holds_lease(f"resume run {run_id}")
             super().resume(run_id)
             self.set_tags(_node_tag())
+
+        def log_metrics(self, metrics, step):
+            self.holds_lease(f"log the metrics of step {step}")
+            super().log_metrics(metrics, step)
+
+        def set_tags(self, tags):
+            self.holds_lease("set tags")
+            super().set_tags(tags)
+
+        def log_artifact(self, path, artifact_path=None):
+            self.holds_lease(f"store {os.path.basename(path)}")
+            super().log_artifact(path, artifact_path)
+
+        def finish(self, status):
+            self.holds_lease(f"mark its run {status}")
+            super().finish(status)
 
     cell = job.cell
     config = RunConfig(cell.learner, cell.task, cell.seed, dict(job.learner_options), dict(job.task_options),
@@ -118,6 +146,7 @@ def run_cell(job: CellJob) -> CellOutcome:
                 resumed = True
             except CheckpointError:  # no checkpoint, learner cannot resume, or other settings: start afresh
                 if tracker.run_id is not None:
+                    tracker.holds_lease(f"mark run {tracker.run_id} KILLED")
                     store = Store(job.tracking_uri, tracker.client)
                     if store.run(tracker.run_id).status == "RUNNING":
                         store.set_status(tracker.run_id, "KILLED")
@@ -127,6 +156,8 @@ def run_cell(job: CellJob) -> CellOutcome:
             result = run(config, tracker=tracker, progress=SilentProgress())
     except StopRequested as stopped:
         return CellOutcome(cell, "stopped", tracker.run_id, stop_reason=str(stopped), resumed=job.resume_run_id is not None)
+    except LeaseLost as lost:  # another worker has the run now: leave it alone
+        return CellOutcome(cell, "superseded", tracker.run_id, error=str(lost))
     except Exception as exc:
         error = f"{type(exc).__name__}: {exc}".splitlines()[0][:500]
         if tracker.run_id is not None:

@@ -14,6 +14,7 @@ from harness.interrupts import StopRequests
 from harness.store import RunReader, Store, layout
 from harness.sweep import pools
 from harness.sweep.cell import CellJob, CellOutcome
+from harness.sweep.lease import grant, revoke
 from harness.sweep.progress import SilentSweepProgress, SweepProgress, TrialWatcher
 from harness.sweep.spec import Cell, SweepSpec, format_seeds, validate
 
@@ -136,7 +137,9 @@ def _record_failed_child(store: Store, job: CellJob, error: str) -> str:
 
 def _mark_crashed(store: Store, job: CellJob, error: str) -> str:
     """The child a dead worker left RUNNING is marked KILLED with the error (the next invocation
-    continues it from its last checkpoint); without one, a FAILED child records the error."""
+    continues it from its last checkpoint); without one, a FAILED child records the error. The
+    cell's lease is revoked first: a worker that lives on writes nothing more."""
+    revoke(store, job.parent_run_id, job.cell)
     run_id = _mark_lost(store, job, error)
     return _record_failed_child(store, job, error) if run_id is None else run_id
 
@@ -151,8 +154,15 @@ def _mark_lost(store: Store, job: CellJob, error: str) -> str | None:
     return run_id
 
 
-def _retry_lost(store: Store, job: CellJob, error: str) -> tuple[CellJob, CellRetry]:
-    """The job that runs a cell whose worker was lost again, resuming the run the worker left (if any)."""
+def _retry_lost(store: Store, job: CellJob, error: str, grace: float = 0.0) -> tuple[CellJob, CellRetry]:
+    """The job that runs a cell whose worker was lost again, resuming the run the worker left (if any).
+
+    The lost worker may live on (a Ray node cut off, not dead): its lease is revoked first, so it
+    writes nothing more, and after ``grace`` seconds (a write it began before lands) the run it
+    left, even one it created just before, is the one resumed."""
+    revoke(store, job.parent_run_id, job.cell)
+    if grace > 0:
+        time.sleep(grace)
     run_id = _mark_lost(store, job, error)
     node, trials = None, 0
     if run_id is not None:
@@ -273,6 +283,7 @@ def _drive(pool: pools.Pool, jobs: deque, workers: int, result: SweepResult, sto
                 pool.request_stop()
             while jobs and len(inflight) < workers and not draining:
                 job = jobs.popleft()
+                job = replace(job, lease=grant(store, job.parent_run_id, job.cell))  # the one writer of its run
                 inflight[pool.submit(job)] = (job, time.perf_counter())
             report()
             if watcher is not None:
@@ -285,7 +296,7 @@ def _drive(pool: pools.Pool, jobs: deque, workers: int, result: SweepResult, sto
                     cause = (str(exc) if isinstance(exc, pools.WorkerProcessDied) else f"{type(exc).__name__}: {exc}").splitlines()[0]
                     if pool.lost(exc) and retried.get(job.cell, 0) < MAX_CELL_RETRIES and not draining:
                         retried[job.cell] = retried.get(job.cell, 0) + 1
-                        again, retry = _retry_lost(store, job, f"worker process died ({cause[:300]})")
+                        again, retry = _retry_lost(store, job, f"worker process died ({cause[:300]})", pool.fence_grace)
                         result.retries.append(retry)
                         progress.cell_retried(retry)
                         jobs.appendleft(again)

@@ -27,9 +27,12 @@ def default_workers() -> int:
 
 
 class Pool(Protocol):
-    """What the driver needs of an executor (``workers``: cells it runs at a time)."""
+    """What the driver needs of an executor (``workers``: cells it runs at a time; ``fence_grace``:
+    seconds a lost cell's worker may still be finishing a write it began before its lease was
+    revoked, :mod:`harness.sweep.lease`)."""
 
     workers: int
+    fence_grace: float
 
     def submit(self, job: CellJob) -> Any: ...
 
@@ -92,6 +95,9 @@ class LocalPool:
     """One spawned process per cell (fresh interpreter state, no pool machinery to break): at most
     ``workers`` run at once, bounded by the sweep driver."""
 
+    #: a lost local cell's process has exited (its sentinel fired): nothing of it is left to write
+    fence_grace = 0.0
+
     def __init__(self, workers: int) -> None:
         import multiprocessing
 
@@ -143,13 +149,21 @@ class LocalPool:
 #: seconds a cancelled local worker gets to mark its run KILLED before it is killed
 WORKER_STOP_SECONDS = 60.0
 
+#: seconds the driver waits, after revoking the lease of a cell whose Ray worker was lost, before it
+#: resumes the cell's run: a write the worker began before (one request to the store) lands first
+RAY_FENCE_GRACE_SECONDS = 5.0
+
 
 class RayPool:
     """Ray tasks (``num_cpus=1``, ``max_calls=1``) on an embedded instance or a cluster.
 
     Ray does not retry a cell itself (``max_retries=0``): its retry would start the cell afresh in a
     new run, leaving the dead worker's run RUNNING; the driver's retry resumes that run instead.
+    A worker on a lost node may live on (a node cut off, a raylet killed before its workers): its
+    lease is revoked and the driver waits :data:`RAY_FENCE_GRACE_SECONDS` before resuming its run.
     """
+
+    fence_grace = RAY_FENCE_GRACE_SECONDS
 
     def __init__(self, workers: int | None, address: str | None) -> None:
         import logging

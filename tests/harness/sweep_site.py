@@ -10,7 +10,10 @@
   ``derive_seeds(s)["learner"] % 3`` = 0, 1, 2) solve after 4 s, after 8 s, and not at all;
 * learner ``sweep-boom``: raises ``RuntimeError("boom in the learner")`` after one episode;
 * learner ``sweep-crash``: its process exits (``os._exit(3)``) after one hand-over;
-* learner ``sweep-slow``: a useless hand-over every 0.2 s until stopped (for interrupting sweeps).
+* learner ``sweep-slow``: a useless hand-over every 0.2 s until stopped (for interrupting sweeps);
+* learner ``sweep-gated``: resumable useless hand-overs; a run started afresh (not resumed) sets
+  ``Gated.WAITING`` before its third trial and waits for ``Gated.GATE`` (a worker that lives on
+  after the driver took it for lost, in one process with the driver).
 """
 
 from __future__ import annotations
@@ -24,6 +27,8 @@ import pytest
 REPO = Path(__file__).resolve().parents[2]
 
 MODULE = '''
+import threading
+
 from harness.learner import Learner
 from tests.harness.toy import Proportional, ToyReach
 
@@ -71,6 +76,28 @@ class Slow(Learner):
             yield Proportional(0.0)
 
 
+class Gated(Learner):
+    name = "sweep-gated"
+    description = "test learner: resumable; a fresh run waits before its third trial until Gated.GATE is set"
+    supports_resume = True
+    WAITING = threading.Event()
+    GATE = threading.Event()
+
+    def state_dict(self):
+        return {"trial": self._trial}
+
+    def learn(self, interaction):
+        fresh = self._resume_state is None
+        self._trial = 0 if fresh else int(self._resume_state["trial"])
+        while True:
+            self._trial += 1
+            if fresh and self._trial == 3:
+                Gated.WAITING.set()
+                Gated.GATE.wait(120)
+            interaction.rollout(Proportional(0.0))
+            yield Proportional(0.0)
+
+
 class Boom(Learner):
     name = "sweep-boom"
     description = "test learner: raises after one episode"
@@ -86,6 +113,7 @@ sweep-steps = sweep_test_plugins:SeedSteps
 sweep-boom = sweep_test_plugins:Boom
 sweep-crash = sweep_test_plugins:Crash
 sweep-slow = sweep_test_plugins:Slow
+sweep-gated = sweep_test_plugins:Gated
 
 [harness.tasks]
 sweep-toy = sweep_test_plugins:SweepToy
@@ -114,6 +142,8 @@ class InlinePool:
     """Runs each cell in the calling process (``monkeypatch.setattr(pools, "LocalPool", InlinePool)``,
     ``pools`` = :mod:`harness.sweep.pools`):
     the driver and the worker function are the real ones, only the process pool is left out."""
+
+    fence_grace = 0.0
 
     def __init__(self, workers: int) -> None:
         self.workers = 1
