@@ -49,7 +49,11 @@ def test_kept_q_is_used(monkeypatch) -> None:
         calls.append(out.untyped_storage().data_ptr() in kept)
         return original(left, right, out)
 
-    monkeypatch.setattr(moments, "_exp_bilinear", counting)
+    monkeypatch.setattr(moments, "_exp_bilinear", counting)  # the torch path's
+    if moments.numba_available():
+        from plugins.pilco import fused
+
+        monkeypatch.setattr(fused, "exp_bilinear", counting)  # the compiled path's (NumPy's exp)
     gp = obj.dynamics
     blocks = len(moments._pair_blocks(gp.num_pairs, gp.posterior.inputs.shape[0], 8))
     per_rollout = blocks * obj.horizon

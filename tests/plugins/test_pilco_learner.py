@@ -220,10 +220,12 @@ def test_fresh_start_keeps_the_lower_J_of_the_two_searches(monkeypatch):
 
 def test_a_run_makes_the_same_decisions_with_either_kernel():
     """The compiled Q contraction and the torch reference, same seed: the same first two policies
-    (J to 1e-9, then 1e-4; their evaluation costs to 1e-3), after which the runs part slowly. The
-    kernels round differently (J ~1e-12 apart), so the first policies differ in their last digits, the
-    GP of trial 2 is trained on data that differ accordingly, and each L-BFGS search amplifies it:
-    J was 6e-6 relative apart at trial 2 and 4e-3 at trial 3 when this was written."""
+    (J to 1e-7, then 1e-4; their evaluation costs to 1e-3), after which the runs part slowly. The
+    kernels round differently (J ~1e-12 apart; the compiled path takes its exp from NumPy, torch
+    from its own, each within 1 ulp), so the L-BFGS searches take slightly different steps and the
+    first policies differ in their last digits (J 1e-9 apart with torch's exp on both sides, 4.2e-9
+    with NumPy's); the GP of trial 2 is trained on data that differ accordingly, and each search
+    amplifies it: J was 6e-6 relative apart at trial 2 and 4e-3 at trial 3 when this was written."""
     pytest.importorskip("numba")
     runs = {}
     for kernel in ("torch", "numba"):
@@ -236,7 +238,7 @@ def test_a_run_makes_the_same_decisions_with_either_kernel():
     J_a, J_b = dict(ta.metrics["J_after"]), dict(tb.metrics["J_after"])
     cost_a, cost_b = dict(ta.metrics["eval_cost"]), dict(tb.metrics["eval_cost"])
     assert J_a.keys() == J_b.keys() == cost_a.keys() == cost_b.keys() == {1, 2, 3}
-    for step, rel in ((1, 1e-9), (2, 1e-4), (3, 5e-2)):
+    for step, rel in ((1, 1e-7), (2, 1e-4), (3, 5e-2)):
         assert J_b[step] == pytest.approx(J_a[step], rel=rel), step
     for step in (1, 2):
         assert cost_b[step] == pytest.approx(cost_a[step], rel=1e-3), step
