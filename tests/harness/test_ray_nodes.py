@@ -1,6 +1,8 @@
 """A Ray node dies mid-sweep: its cell runs again on the other node and resumes its run from the
 last checkpoint stored on the tracking server (no shared file system), and the sweep's results are
-those of an uninterrupted local sweep.
+those of an uninterrupted local sweep, down to `harness report`'s tables (but wall times and run ids).
+The killed node's worker may live on for a few trials (SIGKILL to the node's process group leaves it
+running until it notices its raylet is gone); its lease keeps it from writing once the cell is resumed.
 
 A head (no CPUs) and two one-CPU worker nodes, each with its own temp folder and working folder,
 run PILCO cells against `harness store serve`; once a cell has a checkpoint in the store, its node
@@ -85,6 +87,15 @@ def deterministic_histories(store: Store, run_id: str) -> dict[str, list[tuple[i
 
 
 
+def same_columns(path: Path) -> list[dict[str, str]]:
+    """A report's CSV rows without the columns that differ between two stores of the same results
+    (wall-clock times, run ids)."""
+    import csv
+
+    with open(path) as fh:
+        return [{k: v for k, v in row.items() if "wall" not in k and not k.startswith("run_id")} for row in csv.DictReader(fh)]
+
+
 def cell_runs(store: Store, parent_id: str, experiment_id: str) -> dict[int, list]:
     found: dict[int, list] = {}
     for run in store.children(parent_id, experiment_id):
@@ -149,6 +160,15 @@ def test_a_cell_whose_node_dies_resumes_on_another_node_from_its_stored_checkpoi
             got = deterministic_histories(store, by_seed[seed][0].run_id)
             assert [s for s, _ in got[layout.INTERACTION_SECONDS]] == list(range(1, TRIALS + 1))  # one value a trial
             assert got == histories, f"seed {seed}"
+        # the report against the server gives the tables of the uninterrupted local sweep (but wall times and run ids)
+        tables = {}
+        for name, store_uri in (("server", uri), ("local", f"sqlite:///{local}/mlflow.db")):
+            code, output = run_harness(["report", "--tracking-uri", store_uri, "--sweep", SPEC.sweep_id, "--out", str(tmp_path / name),
+                                        "--no-publish"], tmp_path, timeout=300)
+            assert code == 0, output
+            tables[name] = {f: same_columns(tmp_path / name / f) for f in ("comparison_cartpole.csv", "runs_cartpole.csv")}
+        assert len(tables["local"]["runs_cartpole.csv"]) == 2 and len(tables["local"]["comparison_cartpole.csv"]) == 1
+        assert tables["server"] == tables["local"]
         print(json.dumps({"killed_at_trial": trials_at_kill, "resumed_at_trial": resumed_at[0]}))
     finally:
         for node in reversed(nodes):
