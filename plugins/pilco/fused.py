@@ -278,13 +278,14 @@ def pair_groups(num_pairs: int, num_traced: int, threads: int) -> list[tuple[int
     return [(a, b) for a, b in zip(cuts[:-1], cuts[1:]) if a < b]
 
 
-def _block_size(block, n: int, itemsize: int, groups: int) -> int:
-    """``block``: pairs per block, or a function ``(n, itemsize) -> pairs``. With several groups
-    (threads) each group forms its ``Q`` at once instead: the per-block Python glue holds the GIL,
-    and with two threads fewer, larger blocks measured ~10 % faster, with one ~8 % slower
-    (double pendulum, benchmarks/compare_objective.py)."""
-    if groups > 1:
-        return 1 << 30
+def _block_size(block, n: int, itemsize: int) -> int:
+    """``block``: pairs per block, or a function ``(n, itemsize) -> pairs``; the same with several
+    groups (threads): each group forms its ``Q`` a block at a time, so that it is contracted while in
+    cache. Forming a group's whole ``Q`` at once, as before, left a second thread without gain on this
+    project's 2-core machine (torch at 1 thread, 2 pair-group threads: 0.96-1.0x the one-thread wall
+    time); blocked, 1.12x on the double pendulum and 1.27x on the unicycle
+    (``results/benchmarks/threads_objective.md``).
+    """
     return max(1, int(block(n, itemsize) if callable(block) else block))
 
 
@@ -313,7 +314,7 @@ def forward(left, right, w_left, w_right, inv_k, workspace, out=None, threads: i
     quad, trace, q_wr = np.empty(p), np.empty(e), np.empty((p, n))
     wl, wr, ik = _numpy(w_left), _numpy(w_right), _numpy(inv_k)
     groups = pair_groups(p, e, threads)
-    size = _block_size(block, n, left.element_size(), len(groups))
+    size = _block_size(block, n, left.element_size())
 
     def work(g: int, start: int, stop: int) -> None:
         for s in range(start, stop, size):
@@ -345,7 +346,7 @@ def backward(left, right, w_left, w_right, inv_k, q_wr, g_quad, g_trace, workspa
     gA, gu, gBv, gwr = np.empty((p, n, d)), np.empty((p, n)), np.empty((p, d + 1, n)), np.empty((p, n))
     need_wr = bool(needs[3])
     groups = pair_groups(p, e, threads)
-    size = _block_size(block, n, left.element_size(), len(groups))
+    size = _block_size(block, n, left.element_size())
 
     def work(g: int, start: int, stop: int) -> None:
         if Q is not None:
