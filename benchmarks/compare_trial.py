@@ -61,9 +61,9 @@ def main(argv: list[str] | None = None) -> None:
             harness(ROOT, [*command, "--tracking-uri", uris[side]], stdout=subprocess.DEVNULL).wait()
     first = len(Store(uris["after"]).run(args.run).history("interaction_seconds")) + 1
     load = load_average()
-    procs, started, ended = {}, {}, {}
+    procs, started, ended, logs = {}, {}, {}, {}
     for side, checkout in sides.items():
-        log = open(work / f"{side}.log", "w")
+        log = logs[side] = tempfile.TemporaryFile(mode="w+")  # the run's output (its last line is reported)
         procs[side] = harness(checkout, ["bench", *bench, "--set", "threads=1", "--resume", args.run, "--tracking-uri", uris[side]],
                               stdout=log, stderr=subprocess.STDOUT)
         started[side] = time.perf_counter()
@@ -81,7 +81,7 @@ def main(argv: list[str] | None = None) -> None:
         metric = lambda key: run.history(key).get(first, float("nan"))  # noqa: E731, B023
         gp, policy, evals = metric("model_train_seconds"), metric("policy_opt_seconds"), metric("policy_evaluations")
         rows.append((side, gp, policy, evals, policy / evals, ended[side] - started[side], metric("J_after"),
-                     (work / f"{side}.log").read_text().strip().splitlines()[-1:]))
+                     logs[side].seek(0) or logs[side].read().strip().splitlines()[-1:]))
     lines = [f"# One PILCO trial, before / after, side by side (run `{args.run[:8]}` resumed at trial {first})", "",
              f"Command: `{command_line(__file__, argv)}`  ", f"{machine_line(load)}  ",
              f"before = `{sides['before']}`, after = `{sides['after']}`; both processes at once, one torch thread each.", "",
