@@ -63,7 +63,7 @@ def main(argv: list[str] | None = None) -> None:
     load = load_average()
     procs, started, ended, logs = {}, {}, {}, {}
     for side, checkout in sides.items():
-        log = logs[side] = tempfile.TemporaryFile(mode="w+")  # the run's output (its last line is reported)
+        log = logs[side] = tempfile.TemporaryFile(mode="w+")  # the run's output, its last line echoed below
         procs[side] = harness(checkout, ["bench", *bench, "--set", "threads=1", "--resume", args.run, "--tracking-uri", uris[side]],
                               stdout=log, stderr=subprocess.STDOUT)
         started[side] = time.perf_counter()
@@ -80,15 +80,16 @@ def main(argv: list[str] | None = None) -> None:
         run = Store(uris[side]).run(args.run)
         metric = lambda key: run.history(key).get(first, float("nan"))  # noqa: E731, B023
         gp, policy, evals = metric("model_train_seconds"), metric("policy_opt_seconds"), metric("policy_evaluations")
-        rows.append((side, gp, policy, evals, policy / evals, ended[side] - started[side], metric("J_after"),
-                     logs[side].seek(0) or logs[side].read().strip().splitlines()[-1:]))
+        rows.append((side, gp, policy, evals, policy / evals, ended[side] - started[side], metric("J_after")))
+        logs[side].seek(0)
+        print(f"{side}: {logs[side].read().strip().splitlines()[-1:]}")
     lines = [f"# One PILCO trial, before / after, side by side (run `{args.run[:8]}` resumed at trial {first})", "",
              f"Command: `{command_line(__file__, argv)}`  ", f"{machine_line(load)}  ",
              f"before = `{sides['before']}`, after = `{sides['after']}`; both processes at once, one torch thread each.", "",
              "| side | GP training s | policy search s | J + dJ evaluations | s per evaluation | trial wall s (process) | J after |",
              "|---|---|---|---|---|---|---|"]
-    lines += [f"| {s} | {gp:.1f} | {p:.1f} | {e:.0f} | {p / e:.3f} | {w:.0f} | {j:.4f} |" for s, gp, p, e, _, w, j, _ in rows]
-    (_, gp0, p0, _, pe0, w0, _, _), (_, gp1, p1, _, pe1, w1, _, _) = rows
+    lines += [f"| {s} | {gp:.1f} | {p:.1f} | {e:.0f} | {p / e:.3f} | {w:.0f} | {j:.4f} |" for s, gp, p, e, _, w, j in rows]
+    (_, gp0, p0, _, pe0, w0, _), (_, gp1, p1, _, pe1, w1, _) = rows
     lines += ["", f"Speed-up after/before: GP training {gp0 / gp1:.2f}x, policy search {p0 / p1:.2f}x, per evaluation {pe0 / pe1:.2f}x, "
               f"trial wall {w0 / w1:.2f}x."]
     write_report(lines, args.out)

@@ -34,8 +34,7 @@ sys.path.insert(0, str(ROOT))
 from benchmarks.cmaes import minimise  # noqa: E402
 from benchmarks.report_file import command_line, write_report  # noqa: E402
 from harness.evaluation import Evaluator  # noqa: E402
-from plugins.pilco.controllers import LinearController, SquashedController  # noqa: E402
-from plugins.pilco.learner import GENERIC, PRESETS, PilcoPolicy, layout_for, linear_policy_from_gain  # noqa: E402
+from plugins.pilco.learner import PilcoPolicy, linear_policy, linear_policy_from_gain  # noqa: E402
 from tasks.unicycle import Unicycle  # noqa: E402
 from tasks.unicycle_lqr import riding_lqr  # noqa: E402
 
@@ -44,12 +43,8 @@ HELD_OUT_SEED = 100_000
 
 def policy_of(task: Unicycle, theta: np.ndarray) -> PilcoPolicy:
     """PILCO's squashed linear controller with ``theta = [W.ravel(), b]``."""
-    spec = task.spec
-    f = spec.action_dim
-    W = torch.from_numpy(theta[: -f].reshape(f, -1).copy())
-    b = torch.from_numpy(theta[-f:].copy())
-    controller = SquashedController(LinearController(W, b), np.asarray(spec.action_high, dtype=np.float64), "trapezoid")
-    return PilcoPolicy(controller, layout_for(spec, PRESETS.get(spec.name, GENERIC)))
+    f = task.spec.action_dim
+    return linear_policy(task.spec, theta[:-f].reshape(f, -1), theta[-f:])
 
 
 def theta_of(policy: PilcoPolicy) -> np.ndarray:

@@ -641,9 +641,9 @@ class Unicycle(Task):
     squashing, succeeds in 100 % of 1000 episodes from ``init="code"`` but in at most 65 % from
     ``init="paper"`` (the failures start with large roll or pitch;
     ``results/benchmarks/unicycle_linear_ceiling.md``); a linear policy searched by CMA-ES on the
-    true simulator from there reaches 86 % (``results/benchmarks/unicycle_cmaes_ceiling_paper.md``). Riding away also makes the cost grow
-    (``x_c``): from ``init="paper"`` the 1 m/s LQR's evaluation cost (58.2 of 67) is close to that
-    of falling at once (62.3).
+    true simulator from there reaches 86 % (``results/benchmarks/unicycle_cmaes_ceiling_paper.md``).
+    Riding away also makes the cost grow (``x_c``): from ``init="paper"`` the 1 m/s LQR's evaluation
+    cost (58.2 of 67) is close to that of falling at once (62.3).
 
     Success: the episode ran all ``horizon`` steps without a fall, and at its final true state the
     top of the frame (turntable centre) is within 0.10 m of its upright position, the point

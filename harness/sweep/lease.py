@@ -60,12 +60,14 @@ class LeaseCheck:
 
     def __init__(self, tracker: Any, parent_run_id: str, cell: Cell, token: str | None) -> None:
         self.tracker, self.parent_run_id, self.cell, self.token = tracker, parent_run_id, cell, token
+        self._store: Store | None = None
 
     def __call__(self, what: str) -> None:
         if self.token is None:
             return
-        store = Store(self.tracker.tracking_uri, self.tracker.client)
-        current = store.run(self.parent_run_id).tags.get(lease_tag(self.cell))
+        if self._store is None:
+            self._store = Store(self.tracker.tracking_uri, self.tracker.client)
+        current = self._store.run(self.parent_run_id).tags.get(lease_tag(self.cell))
         if current != self.token:
             raise LeaseLost(f"{self.cell.label}: not allowed to {what}: the sweep driver gave this cell to another worker "
                             "(this worker was taken for lost); it stops without writing")

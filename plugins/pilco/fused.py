@@ -55,7 +55,6 @@ from numba.core.compiler import CompilerBase, DefaultPassBuilder
 from numba.core.compiler_machinery import FunctionPass, register_pass
 from numba.core.untyped_passes import TranslateByteCode
 
-from plugins.pilco import moments
 
 #: fast-math flags of the kernels: reassociation (vectorised sums) and contraction (FMA); no
 #: assumptions about NaN or infinity, so a NaN in the inputs still shows in the results
@@ -297,7 +296,7 @@ def exp_bilinear(left: torch.Tensor, right: torch.Tensor, out: torch.Tensor) -> 
     """``out = exp(left @ right^T)`` as :func:`plugins.pilco.moments._exp_bilinear`, the exponential
     by NumPy: its SIMD exp (AVX-512/AVX2) took 0.7-1.0 G elements/s against torch's 0.45-0.54 on this
     project's machine at the ``(b, 400, 400)`` blocks of the double pendulum, both within 1 ulp of
-    libm; the exp is the largest part of J + dJ (``results/benchmarks/objective_gradient_before_after_tasks.md``)."""
+    libm; the exp was the largest part of J + dJ (``results/benchmarks/objective_gradient_numpy_exp_tasks.md``)."""
     torch.bmm(left, right.mT, out=out)
     q = _numpy(out)
     np.exp(q, out=q)

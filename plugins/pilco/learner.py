@@ -179,6 +179,14 @@ def pilco_policy_from_state(state: dict[str, Any], spec: TaskSpec) -> PilcoPolic
     return PilcoPolicy(controller, layout)
 
 
+def linear_policy(spec: TaskSpec, W: np.ndarray, b: np.ndarray, squash: str = "trapezoid") -> PilcoPolicy:
+    """PILCO's squashed linear controller ``u = u_max squash(W a + b)`` on the task's policy inputs
+    ``a`` (its preset's layout); ``W (F, p)``, ``b (F,)``."""
+    u_max = np.asarray(spec.action_high, dtype=np.float64)
+    W, b = (torch.from_numpy(np.array(v, dtype=np.float64)) for v in (W, b))
+    return PilcoPolicy(SquashedController(LinearController(W, b), u_max, squash), layout_for(spec, PRESETS.get(spec.name, GENERIC)))
+
+
 def linear_policy_from_gain(spec: TaskSpec, K: np.ndarray, x_star: np.ndarray, squash: str = "trapezoid") -> PilcoPolicy:
     """PILCO's squashed linear controller equal to ``u = -K (x - x*)`` to first order at ``x*``.
 
@@ -193,9 +201,7 @@ def linear_policy_from_gain(spec: TaskSpec, K: np.ndarray, x_star: np.ndarray, s
         raise ValueError(f"{spec.name}: the policy does not see the raw state ({layout.policy_inputs}); a gain on it cannot be mapped")
     u_max = np.asarray(spec.action_high, dtype=np.float64)
     W = -np.asarray(K, dtype=np.float64) / (SQUASH_SLOPE[squash] * u_max[:, None])
-    b = -W @ np.asarray(x_star, dtype=np.float64)
-    controller = SquashedController(LinearController(torch.from_numpy(W), torch.from_numpy(b)), u_max, squash)
-    return PilcoPolicy(controller, layout)
+    return linear_policy(spec, W, -W @ np.asarray(x_star, dtype=np.float64), squash)
 
 
 def _initial_policy_input_moments(spec: TaskSpec, layout: StateLayout) -> tuple[torch.Tensor, torch.Tensor]:

@@ -74,15 +74,13 @@ class CutOffPool:
 
 
 def test_a_lost_worker_that_lives_on_writes_nothing_and_its_cell_resumes_once(plugins, mlflow_uri, monkeypatch):
-    gated = sys.modules.get("sweep_test_plugins")
     pool = CutOffPool()
     monkeypatch.setattr(pools, "make_pool", lambda *args: pool)
     spec = SweepSpec(("sweep-gated",), ("sweep-toy",), (5,), max_trials=TRIALS, eval_episodes=1)
     try:
         result = run_sweep(spec, mlflow_uri)
     finally:
-        gated = sys.modules["sweep_test_plugins"].Gated
-        gated.GATE.set()  # the cut-off worker goes on: its third trial, then its writes
+        sys.modules["sweep_test_plugins"].Gated.GATE.set()  # the cut-off worker goes on: its third trial, then its writes
     pool.cut_off["thread"].join(60)
     assert not pool.cut_off["thread"].is_alive()
 
