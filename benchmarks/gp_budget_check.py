@@ -71,7 +71,11 @@ def one_step_scores(model: GPModel, x: np.ndarray, y: np.ndarray) -> tuple[float
     """
     with torch.no_grad():
         mean, var = model.predict(torch.as_tensor(x), include_noise=True)
-    mean, var = mean.numpy(), var.numpy()
+    return predictive_scores(mean.numpy(), var.numpy(), y)
+
+
+def predictive_scores(mean: np.ndarray, var: np.ndarray, y: np.ndarray) -> tuple[float, float]:
+    """``(NLPD, SMSE)`` of Gaussian predictions ``mean, var (m, E)`` (noise included) of targets ``y (m, E)``."""
     nlpd = 0.5 * (np.log(2 * math.pi * var) + (y - mean) ** 2 / var)
     smse = ((y - mean) ** 2).mean(0) / y.var(0)
     return float(nlpd.sum(1).mean()), float(smse.mean())

@@ -40,7 +40,8 @@ from threadpoolctl import threadpool_limits
 from harness.errors import NumericalError
 from plugins.pilco.kernels import cholesky, se_ard
 from plugins.pilco.posterior import GPPosterior
-from plugins.pilco.sparse import FITC_RIDGE, fitc_negative_log_likelihood, fitc_nll_of_pseudo_inputs, fitc_posterior
+from plugins.pilco.sparse import (FITC_RIDGE, fitc_negative_log_likelihood, fitc_nll_of_pseudo_inputs, fitc_posterior,
+                                  reduced_posterior)
 
 DTYPE = torch.float64
 #: hypCurb: length-scales within ~100x of the input std, signal-to-noise ratio below ~1000, power 30
@@ -677,10 +678,24 @@ class GPModel:
         self._require_fitted()
         return self._hyp.pseudo_inputs is not None
 
-    def posterior(self) -> GPPosterior:
-        """The trained model as a (detached) :class:`GPPosterior` for moment matching."""
+    def posterior(self, max_basis: int | None = None) -> GPPosterior:
+        """The trained model as a (detached) :class:`GPPosterior` for moment matching.
+
+        ``max_basis``: plan with at most this many basis points. Where the model has more (FITC
+        pseudo-inputs, or a full GP's training inputs), a FITC posterior on that many of them,
+        chosen by pivoted Cholesky, with the same hyperparameters and data
+        (:func:`plugins.pilco.sparse.reduced_posterior`); ``None`` or a larger number: the model itself.
+        """
         self._require_fitted()
-        return self._posterior
+        h = self._hyp
+        basis = h.pseudo_inputs if h.pseudo_inputs is not None else self._inputs
+        if max_basis is None or max_basis >= basis.shape[0]:
+            return self._posterior
+        if max_basis < 1:
+            raise ValueError(f"max_basis={max_basis}: need at least 1 basis point")
+        with torch.no_grad():
+            return reduced_posterior(self._inputs, self._targets, basis, h.log_ell, h.log_alpha, h.log_sigma,
+                                     max_basis, self.fitc_ridge)
 
     def predict(self, test_inputs, include_noise: bool = False) -> tuple[torch.Tensor, torch.Tensor]:
         """Mean ``(m, E)`` and variance ``(m, E)`` at deterministic inputs ``(m, d)``.

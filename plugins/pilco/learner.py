@@ -302,6 +302,10 @@ class Pilco(Learner):
                "default: off, the policy sees the latent state as in the reference code's last version)"),
         Option("sparse_threshold", int, None, "FITC above this many data points (default: task preset)", low=1),
         Option("num_pseudo", int, None, "FITC pseudo-inputs (default: the sparse threshold)", low=1),
+        Option("planning_basis", int, None, "plan (J, dJ) with at most this many of the model's basis points (FITC "
+               "pseudo-inputs or training inputs, chosen by pivoted Cholesky; same hyperparameters and data): "
+               "moment matching's cost grows with their square; what it costs in model quality and in the policy found: "
+               "results/benchmarks/planning_basis_check_double-pendulum.md (default: all)", low=1),
         Option("gp_max_evals", int, 300, "GP hyperparameter L-BFGS evaluations per trial", low=0),
         Option("gp_fitc_evals", int, 100, "FITC pseudo-input L-BFGS evaluations per trial (3x the first time; "
                "the reference allows 500 line searches)", low=0),
@@ -429,8 +433,9 @@ class Pilco(Learner):
                 fit = model.fit(x, y, warm_start=hyperparameters, restarts=o["gp_restarts"], seed=self.seed + trial)
                 hyperparameters = model.hyperparameters
 
+                posterior = model.posterior(max_basis=o["planning_basis"])
                 objective = PolicyObjective(
-                    controller, model.posterior(), self.layout, spec.cost, spec.init_mean, spec.init_cov,
+                    controller, posterior, self.layout, spec.cost, spec.init_mean, spec.init_cov,
                     self.horizon, mean_only=self.mean_only, width=self.cost_width, policy_noise_std=self.policy_noise_std,
                     kernel=kernel, threads=threads, device=self.device,
                 )
@@ -456,6 +461,7 @@ class Pilco(Learner):
                                         J_fresh_start=fresh["J"] if fresh else math.nan)
                 last_J = search.J_after if search is not None else last_J
                 self.metrics["planning_horizon"] = float(self.horizon)
+                self.metrics["planning_basis"] = float(posterior.inputs.shape[0])
                 if sampled is not None:
                     self.metrics["J_sampled"] = float(sampled.sum())
                 self.artifacts += self._save_model(workdir, trial, model, fit)

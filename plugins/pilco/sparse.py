@@ -139,6 +139,66 @@ def fitc_posterior(
     )
 
 
+def select_basis(basis: torch.Tensor, log_ell: torch.Tensor, count: int) -> torch.Tensor:
+    """``count`` of the ``M`` basis inputs that span the kernel's geometry best: greedy pivoted Cholesky.
+
+    On the outputs' mean unit-signal Gram matrix ``K[i, j] = mean_a exp(-1/2 |(z_i - z_j) / ell_a|^2)``
+    each step takes the point with the largest variance left unexplained by the points already
+    taken (``K_ii - L_i L_i^T``), i.e. the one least predictable from them. Deterministic, ``O(M^2 count)``.
+
+    Args:
+        basis: ``(M, d)`` basis inputs (FITC pseudo-inputs, or a full GP's training inputs).
+        log_ell: ``(E, d)`` log length-scales.
+        count: how many to keep, ``1 <= count <= M``.
+
+    Returns:
+        ``(count,)`` long indices into ``basis`` in the order taken.
+    """
+    m = basis.shape[0]
+    if not 1 <= count <= m:
+        raise ValueError(f"select_basis: count={count} must be between 1 and the {m} basis inputs")
+    zeros = torch.zeros(log_ell.shape[0], dtype=basis.dtype, device=basis.device)
+    gram = se_ard(basis, basis, log_ell, zeros).mean(0)  # (M, M), unit diagonal
+    residual = gram.diagonal().clone()
+    factor = basis.new_zeros(m, count)
+    chosen = []
+    for k in range(count):
+        i = int(torch.argmax(residual))
+        chosen.append(i)
+        column = (gram[:, i] - factor[:, :k] @ factor[i, :k]) / residual[i].clamp_min(1e-300).sqrt()
+        factor[:, k] = column
+        residual = (residual - column * column).clamp_min(0.0)
+        residual[chosen] = -1.0  # never taken twice (duplicates have residual 0 and would tie)
+    return torch.tensor(chosen, dtype=torch.long, device=basis.device)
+
+
+def reduced_posterior(
+    inputs: torch.Tensor,
+    targets: torch.Tensor,
+    basis: torch.Tensor,
+    log_ell: torch.Tensor,
+    log_alpha: torch.Tensor,
+    log_sigma: torch.Tensor,
+    count: int,
+    ridge: float = FITC_RIDGE,
+) -> GPPosterior:
+    """A FITC posterior on ``count`` of the model's basis inputs, for cheaper planning.
+
+    The basis inputs are chosen by :func:`select_basis`; the hyperparameters and the training data
+    are the model's own, so only the basis shrinks. Moment matching's cost per step grows with the
+    square of the basis size, so half the basis is about a quarter of the planning arithmetic; what
+    it costs in model quality is measured by ``benchmarks/planning_basis_check.py``.
+
+    Args:
+        inputs, targets: ``(n, d)``, ``(n, E)`` training data.
+        basis: ``(M, d)`` the model's basis (pseudo-inputs, or a full GP's training inputs).
+        log_ell, log_alpha, log_sigma: the model's log-hyperparameters.
+        count: basis points kept, ``1 <= count <= M``.
+    """
+    keep = select_basis(basis, log_ell, count)
+    return fitc_posterior(inputs, targets, basis[keep], log_ell, log_alpha, log_sigma, ridge)
+
+
 def fitc_nll_and_pseudo_gradient(
     inputs: torch.Tensor,
     targets: torch.Tensor,

@@ -29,6 +29,8 @@ from plugins.pilco.sparse import (
     fitc_nll_and_pseudo_gradient,
     fitc_nll_of_pseudo_inputs,
     fitc_posterior,
+    reduced_posterior,
+    select_basis,
 )
 
 DT = torch.float64
@@ -498,3 +500,57 @@ def test_state_dict_round_trip(sparse):
     xs = torch.randn(5, 2, dtype=DT)
     for got, want in zip(restored.predict(xs), model.predict(xs)):
         torch.testing.assert_close(got, want, rtol=1e-12, atol=1e-12)
+
+
+# ----------------------------------------------------------------------------- planning on fewer basis points
+
+
+def test_select_basis_takes_the_point_least_explained_by_those_taken():
+    """Greedy pivoted Cholesky against the conditional variances computed directly (K_ii - K_iS K_SS^-1 K_Si)."""
+    gen = torch.Generator().manual_seed(31)
+    z = torch.randn(30, 3, generator=gen, dtype=DT)
+    z[7] = z[3]  # a duplicate is never taken while a distinct point is left
+    h = random_hyp(2, 3, gen)
+    keep = select_basis(z, h.log_ell, 29).tolist()
+    assert len(set(keep)) == 29 and not {3, 7} <= set(keep)
+    gram = se_ard(z, z, h.log_ell, torch.zeros(2, dtype=DT)).mean(0).numpy()
+    taken = [keep[0]]
+    for nxt in keep[1:12]:
+        rest = [i for i in range(30) if i not in taken]
+        k_ss = gram[np.ix_(taken, taken)]
+        cond = [gram[i, i] - gram[i, taken] @ np.linalg.solve(k_ss, gram[taken, i]) for i in rest]
+        assert rest[int(np.argmax(cond))] == nxt
+        taken.append(nxt)
+    with pytest.raises(ValueError, match="between 1 and the 30"):
+        select_basis(z, h.log_ell, 31)
+
+
+def test_planning_posterior_on_fewer_points_is_fitc_on_the_selected_ones():
+    """GPModel.posterior(max_basis=m): the model itself for m >= its basis; else FITC with m of its basis inputs,
+    the same hyperparameters and data; for a full GP on all its inputs FITC is the exact GP (textbook identity)."""
+    x, y = gp_sample(60, 2, [0.8, 1.2, 1.0, 0.5], [1.0, 0.5], 0.05, seed=16)
+    xs = torch.randn(7, 2, dtype=DT)
+    full = GPModel(sparse_threshold=300, max_evals_full=60)
+    full.fit(x, y)
+    assert full.posterior(max_basis=60) is full.posterior() and full.posterior(max_basis=500) is full.posterior()
+    h = full.hyperparameters
+    as_fitc = reduced_posterior(full.state_dict()["inputs"], full.state_dict()["targets"], full.state_dict()["inputs"],
+                                h.log_ell, h.log_alpha, h.log_sigma, 60, ridge=1e-10)
+    for got, want in zip(predict_latent(as_fitc, xs), predict_latent(full.posterior(), xs)):
+        torch.testing.assert_close(got, want, rtol=1e-5, atol=1e-7)
+    fewer = full.posterior(max_basis=15)
+    assert fewer.inputs.shape == (15, 2)
+    inputs = full.state_dict()["inputs"]
+    keep = select_basis(inputs, h.log_ell, 15)
+    torch.testing.assert_close(fewer.inputs, inputs[keep], rtol=0, atol=0)
+    textbook = [textbook_fitc(inputs, y[:, a].numpy(), inputs[keep], h.log_ell[a].numpy(), float(h.log_alpha[a]),
+                              float(h.log_sigma[a]), xs) for a in range(2)]
+    mean, var = predict_latent(fewer, xs)
+    np.testing.assert_allclose(mean.numpy(), np.stack([t[1] for t in textbook], 1), rtol=1e-6, atol=1e-8)
+    np.testing.assert_allclose(var.numpy(), np.stack([t[2] for t in textbook], 1), rtol=1e-6, atol=1e-8)
+    sparse = GPModel(sparse_threshold=40, num_pseudo=20, max_evals_full=60, max_evals_fitc=20)
+    sparse.fit(x, y)
+    assert sparse.posterior(max_basis=20) is sparse.posterior()
+    assert sparse.posterior(max_basis=8).inputs.shape == (8, 2)
+    with pytest.raises(ValueError, match="at least 1"):
+        sparse.posterior(max_basis=0)

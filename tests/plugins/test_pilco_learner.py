@@ -82,6 +82,19 @@ def test_gp_training_budgets_reach_the_dynamics_model(monkeypatch):
     assert (default.options["gp_fitc_evals"], default.options["gp_hyper_subset"], default.options["gp_refresh_pseudo"]) == (100, None, False)
 
 
+def test_planning_basis_bounds_the_basis_the_policy_search_plans_with():
+    """planning_basis=10: J is computed on a 10-point FITC posterior of the trained GP (15 and 30 points here),
+    logged per trial; by default the whole model (a full GP: all its points)."""
+    trackers = {}
+    for label, extra in (("default", {}), ("reduced", {"planning_basis": "10"})):
+        trackers[label] = MemoryTracker()
+        run(RunConfig("pilco", "cartpole", seed=0, learner_options={**TINY, "plots": "false", "sample_particles": "0", **extra},
+                      task_options={"horizon": 15}, max_trials=2, eval_episodes=1), tracker=trackers[label])
+    assert dict(trackers["default"].metrics["planning_basis"]) == {1: 15.0, 2: 30.0}
+    assert dict(trackers["reduced"].metrics["planning_basis"]) == {1: 10.0, 2: 10.0}
+    assert dict(trackers["reduced"].metrics["J_after"]) != dict(trackers["default"].metrics["J_after"])
+
+
 def test_planning_horizon_and_cost_width_come_from_the_task_preset():
     """dm_control cart-pole plans over 40 steps with a 0.42 m width; other tasks use the task's; options override."""
     from tasks.dmc_cartpole import DMCCartpole
