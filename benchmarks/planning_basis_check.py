@@ -10,8 +10,8 @@ harness's pickle is read as ``harness store migrate`` reads it, so only checkpoi
 runs): the data, the GP hyperparameters (``M`` FITC pseudo-inputs, or a full GP on its training
 inputs) and the policy handed over at that trial after planning with that GP. Then builds the planning
 posterior of the learner option ``planning_basis`` for each count in ``--basis``
-(:func:`plugins.pilco.sparse.reduced_posterior`: that many of the model's basis points, chosen by
-pivoted Cholesky, same hyperparameters and data), the same subset with its pseudo-inputs then
+(:func:`plugins.pilco.sparse.reduced_posterior`: that many of the model's basis points, chosen
+greedily where they explain the kernel at the training inputs best, same hyperparameters and data), the same subset with its pseudo-inputs then
 optimised on the FITC likelihood (``--refine`` L-BFGS evaluations, the learner's pseudo-input
 optimisation: what a model trained with ``num_pseudo`` = that count would plan with), and a control
 that keeps a uniformly random subset of the same size. Each is scored on
@@ -200,11 +200,11 @@ def main(argv: list[str] | None = None) -> None:
         score(f"all {basis.shape[0]} (the model)", whole, None)
         generator = torch.Generator().manual_seed(run.trial)
         for count in sorted({b for b in args.basis if b < basis.shape[0]}, reverse=True):
-            score(f"{count}, pivoted", model.posterior(max_basis=count), None)
+            score(f"{count}, greedy", model.posterior(max_basis=count), None)
             start = time.process_time()
-            z, _, _ = optimise_pseudo_inputs(inputs, targets, h, basis[select_basis(basis, h.log_ell, count)], args.refine)
+            z, _, _ = optimise_pseudo_inputs(inputs, targets, h, basis[select_basis(basis, inputs, h.log_ell, count)], args.refine)
             refine_seconds = time.process_time() - start
-            score(f"{count}, pivoted + {args.refine} FITC evaluations", fitc_posterior(inputs, targets, z, h.log_ell, h.log_alpha,
+            score(f"{count}, greedy + {args.refine} FITC evaluations", fitc_posterior(inputs, targets, z, h.log_ell, h.log_alpha,
                                                                                   h.log_sigma), refine_seconds)
             keep = torch.randperm(basis.shape[0], generator=generator)[:count]
             score(f"{count}, random", fitc_posterior(inputs, targets, basis[keep], h.log_ell, h.log_alpha, h.log_sigma), None)

@@ -683,7 +683,7 @@ class GPModel:
 
         ``max_basis``: plan with at most this many basis points. Where the model has more (FITC
         pseudo-inputs, or a full GP's training inputs), a FITC posterior on that many of them,
-        chosen by pivoted Cholesky, with the same hyperparameters and data
+        chosen greedily where they explain the kernel at the data best, with the same hyperparameters and data
         (:func:`plugins.pilco.sparse.reduced_posterior`); ``None`` or a larger number: the model itself.
         """
         self._require_fitted()

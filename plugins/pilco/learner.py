@@ -303,9 +303,10 @@ class Pilco(Learner):
         Option("sparse_threshold", int, None, "FITC above this many data points (default: task preset)", low=1),
         Option("num_pseudo", int, None, "FITC pseudo-inputs (default: the sparse threshold)", low=1),
         Option("planning_basis", int, None, "plan (J, dJ) with at most this many of the model's basis points (FITC "
-               "pseudo-inputs or training inputs, chosen by pivoted Cholesky; same hyperparameters and data): "
+               "pseudo-inputs or training inputs, chosen greedily where they explain the kernel at the data best; same "
+               "hyperparameters and data): "
                "moment matching's cost grows with their square; what it costs in model quality and in the policy found: "
-               "results/benchmarks/planning_basis_check_double-pendulum.md (default: all)", low=1),
+               "results/findings_double-pendulum.md (default: all)", low=1),
         Option("gp_max_evals", int, 300, "GP hyperparameter L-BFGS evaluations per trial", low=0),
         Option("gp_fitc_evals", int, 100, "FITC pseudo-input L-BFGS evaluations per trial (3x the first time; "
                "the reference allows 500 line searches)", low=0),

@@ -139,15 +139,20 @@ def fitc_posterior(
     )
 
 
-def select_basis(basis: torch.Tensor, log_ell: torch.Tensor, count: int) -> torch.Tensor:
-    """``count`` of the ``M`` basis inputs that span the kernel's geometry best: greedy pivoted Cholesky.
+def select_basis(basis: torch.Tensor, inputs: torch.Tensor, log_ell: torch.Tensor, count: int) -> torch.Tensor:
+    """``count`` of the ``M`` basis inputs that explain the kernel at the training inputs best (greedy).
 
-    On the outputs' mean unit-signal Gram matrix ``K[i, j] = mean_a exp(-1/2 |(z_i - z_j) / ell_a|^2)``
-    each step takes the point with the largest variance left unexplained by the points already
-    taken (``K_ii - L_i L_i^T``), i.e. the one least predictable from them. Deterministic, ``O(M^2 count)``.
+    Each step takes the basis point that most reduces ``sum_a sum_i (k_a(x_i, x_i) - Q_a,ii) / alpha_a^2``,
+    the part of the prior variance at the training inputs that the chosen basis does not explain
+    (FITC's ``Lambda - sigma^2``; the Nystroem error of Smola & Schoelkopf's sparse greedy matrix
+    approximation): ``gain_j = sum_a |r_a,j|^2 / d_a,j`` with ``r_a,j`` the residual covariance between the
+    data and basis point ``j`` and ``d_a,j`` its residual variance, both given the points taken so far
+    (rank-one updates of a partial Cholesky factor). Unlike spreading the points over the kernel's
+    geometry it keeps them where the data are. Deterministic, ``O(E n M count)``.
 
     Args:
         basis: ``(M, d)`` basis inputs (FITC pseudo-inputs, or a full GP's training inputs).
+        inputs: ``(n, d)`` training inputs.
         log_ell: ``(E, d)`` log length-scales.
         count: how many to keep, ``1 <= count <= M``.
 
@@ -158,17 +163,24 @@ def select_basis(basis: torch.Tensor, log_ell: torch.Tensor, count: int) -> torc
     if not 1 <= count <= m:
         raise ValueError(f"select_basis: count={count} must be between 1 and the {m} basis inputs")
     zeros = torch.zeros(log_ell.shape[0], dtype=basis.dtype, device=basis.device)
-    gram = se_ard(basis, basis, log_ell, zeros).mean(0)  # (M, M), unit diagonal
-    residual = gram.diagonal().clone()
-    factor = basis.new_zeros(m, count)
+    gram = se_ard(basis, basis, log_ell, zeros)  # (E, M, M), unit signal variance
+    residual = se_ard(inputs, basis, log_ell, zeros)  # (E, n, M): data-basis covariance given the points taken
+    variance = gram.diagonal(dim1=-2, dim2=-1).clone()  # (E, M): residual variance of each basis point
+    factor = basis.new_zeros(log_ell.shape[0], m, count)  # partial Cholesky factor over the basis
+    taken = torch.zeros(m, dtype=torch.bool, device=basis.device)
     chosen = []
     for k in range(count):
-        i = int(torch.argmax(residual))
-        chosen.append(i)
-        column = (gram[:, i] - factor[:, :k] @ factor[i, :k]) / residual[i].clamp_min(1e-300).sqrt()
-        factor[:, k] = column
-        residual = (residual - column * column).clamp_min(0.0)
-        residual[chosen] = -1.0  # never taken twice (duplicates have residual 0 and would tie)
+        gain = ((residual * residual).sum(1) / variance.clamp_min(1e-12)).sum(0)  # (M,)
+        gain[taken] = -1.0  # never taken twice (a duplicate of a taken point gains nothing either)
+        j = int(torch.argmax(gain))
+        chosen.append(j)
+        taken[j] = True
+        scale = variance[:, j].clamp_min(1e-300).sqrt()  # (E,)
+        column = (gram[:, :, j] - (factor[:, :, :k] @ factor[:, j, :k, None])[..., 0]) / scale[:, None]  # (E, M)
+        data_column = residual[:, :, j] / scale[:, None]  # (E, n)
+        factor[:, :, k] = column
+        residual -= data_column[:, :, None] * column[:, None, :]
+        variance = (variance - column * column).clamp_min(0.0)
     return torch.tensor(chosen, dtype=torch.long, device=basis.device)
 
 
@@ -184,8 +196,8 @@ def reduced_posterior(
 ) -> GPPosterior:
     """A FITC posterior on ``count`` of the model's basis inputs, for cheaper planning.
 
-    The basis inputs are chosen by :func:`select_basis`; the hyperparameters and the training data
-    are the model's own, so only the basis shrinks. Moment matching's cost per step grows with the
+    The basis inputs are chosen by :func:`select_basis` (where the data are); the hyperparameters and
+    the training data are the model's own, so only the basis shrinks. Moment matching's cost per step grows with the
     square of the basis size, so half the basis is about a quarter of the planning arithmetic; what
     it costs in model quality is measured by ``benchmarks/planning_basis_check.py``.
 
@@ -195,7 +207,7 @@ def reduced_posterior(
         log_ell, log_alpha, log_sigma: the model's log-hyperparameters.
         count: basis points kept, ``1 <= count <= M``.
     """
-    keep = select_basis(basis, log_ell, count)
+    keep = select_basis(basis, inputs, log_ell, count)
     return fitc_posterior(inputs, targets, basis[keep], log_ell, log_alpha, log_sigma, ridge)
 
 

@@ -24,7 +24,7 @@ def test_planning_basis_check_on_a_tiny_sparse_run(tmp_path):
     main(["--checkpoints", str(checkpoint), "--test", f"{checkpoint}:0-1", "--basis", "8", "30", "--episodes", "2",
           "--refine", "3", "--search", "3", "--out", str(out)])
     rows = [line for line in out.read_text().splitlines() if line.startswith("| `")]
-    assert [row.split(" | ")[4] for row in rows] == ["all 12 (the model)", "8, pivoted", "8, pivoted + 3 FITC evaluations",
+    assert [row.split(" | ")[4] for row in rows] == ["all 12 (the model)", "8, greedy", "8, greedy + 3 FITC evaluations",
                                                      "8, random"]
     J_whole = float(rows[0].split(" | ")[7])
     assert J_whole == pytest.approx(dict(tracker.metrics["J_after"])[2], abs=0.005)  # the run's own J of that policy

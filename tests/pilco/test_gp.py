@@ -505,24 +505,32 @@ def test_state_dict_round_trip(sparse):
 # ----------------------------------------------------------------------------- planning on fewer basis points
 
 
-def test_select_basis_takes_the_point_least_explained_by_those_taken():
-    """Greedy pivoted Cholesky against the conditional variances computed directly (K_ii - K_iS K_SS^-1 K_Si)."""
+def test_select_basis_takes_the_point_that_explains_most_prior_variance_at_the_data():
+    """Each greedy step against the explained variance computed directly for every candidate,
+    sum_a sum_i [K_iS K_SS^-1 K_Si]_a (unit signal variance), by explicit solves."""
     gen = torch.Generator().manual_seed(31)
-    z = torch.randn(30, 3, generator=gen, dtype=DT)
-    z[7] = z[3]  # a duplicate is never taken while a distinct point is left
+    z = torch.randn(25, 3, generator=gen, dtype=DT)
+    z[7] = z[3]  # a duplicate adds nothing once its twin is taken
+    x = torch.randn(40, 3, generator=gen, dtype=DT) * 0.7 + 0.5  # data off-centre: the choice must follow them
     h = random_hyp(2, 3, gen)
-    keep = select_basis(z, h.log_ell, 29).tolist()
-    assert len(set(keep)) == 29 and not {3, 7} <= set(keep)
-    gram = se_ard(z, z, h.log_ell, torch.zeros(2, dtype=DT)).mean(0).numpy()
-    taken = [keep[0]]
-    for nxt in keep[1:12]:
-        rest = [i for i in range(30) if i not in taken]
-        k_ss = gram[np.ix_(taken, taken)]
-        cond = [gram[i, i] - gram[i, taken] @ np.linalg.solve(k_ss, gram[taken, i]) for i in rest]
-        assert rest[int(np.argmax(cond))] == nxt
+    keep = select_basis(z, x, h.log_ell, 24).tolist()
+    assert len(set(keep)) == 24 and not {3, 7} <= set(keep)
+    unit = torch.zeros(2, dtype=DT)
+    k_zz = se_ard(z, z, h.log_ell, unit).numpy()
+    k_xz = se_ard(x, z, h.log_ell, unit).numpy()
+
+    def explained(subset):
+        return sum(np.trace(k_xz[a][:, subset] @ np.linalg.solve(k_zz[a][np.ix_(subset, subset)] + 1e-9 * np.eye(len(subset)),
+                                                                     k_xz[a][:, subset].T))
+                   for a in range(2))
+
+    taken = []
+    for nxt in keep[:10]:
+        rest = [i for i in range(25) if i not in taken]
+        assert rest[int(np.argmax([explained(taken + [i]) for i in rest]))] == nxt
         taken.append(nxt)
-    with pytest.raises(ValueError, match="between 1 and the 30"):
-        select_basis(z, h.log_ell, 31)
+    with pytest.raises(ValueError, match="between 1 and the 25"):
+        select_basis(z, x, h.log_ell, 26)
 
 
 def test_planning_posterior_on_fewer_points_is_fitc_on_the_selected_ones():
@@ -541,7 +549,7 @@ def test_planning_posterior_on_fewer_points_is_fitc_on_the_selected_ones():
     fewer = full.posterior(max_basis=15)
     assert fewer.inputs.shape == (15, 2)
     inputs = full.state_dict()["inputs"]
-    keep = select_basis(inputs, h.log_ell, 15)
+    keep = select_basis(inputs, inputs, h.log_ell, 15)
     torch.testing.assert_close(fewer.inputs, inputs[keep], rtol=0, atol=0)
     textbook = [textbook_fitc(inputs, y[:, a].numpy(), inputs[keep], h.log_ell[a].numpy(), float(h.log_alpha[a]),
                               float(h.log_sigma[a]), xs) for a in range(2)]
