@@ -139,6 +139,10 @@ def fitc_posterior(
     )
 
 
+#: residual variance (relative to the unit signal variance) below which a basis point counts as explained
+EXPLAINED = 1e-10
+
+
 def select_basis(basis: torch.Tensor, inputs: torch.Tensor, log_ell: torch.Tensor, count: int) -> torch.Tensor:
     """``count`` of the ``M`` basis inputs that explain the kernel at the training inputs best (greedy).
 
@@ -170,14 +174,17 @@ def select_basis(basis: torch.Tensor, inputs: torch.Tensor, log_ell: torch.Tenso
     taken = torch.zeros(m, dtype=torch.bool, device=basis.device)
     chosen = []
     for k in range(count):
-        gain = ((residual * residual).sum(1) / variance.clamp_min(1e-12)).sum(0)  # (M,)
+        # an output for which a point is already explained (residual variance ~ rounding) gains nothing from it
+        live = variance > EXPLAINED
+        gain = torch.where(live, (residual * residual).sum(1) / torch.where(live, variance, 1.0), 0.0).sum(0)  # (M,)
         gain[taken] = -1.0  # never taken twice (a duplicate of a taken point gains nothing either)
         j = int(torch.argmax(gain))
         chosen.append(j)
         taken[j] = True
-        scale = variance[:, j].clamp_min(1e-300).sqrt()  # (E,)
-        column = (gram[:, :, j] - (factor[:, :, :k] @ factor[:, j, :k, None])[..., 0]) / scale[:, None]  # (E, M)
-        data_column = residual[:, :, j] / scale[:, None]  # (E, n)
+        ok = live[:, j, None]  # (E, 1)
+        scale = torch.where(ok, variance[:, j, None], 1.0).sqrt()
+        column = torch.where(ok, (gram[:, :, j] - (factor[:, :, :k] @ factor[:, j, :k, None])[..., 0]) / scale, 0.0)  # (E, M)
+        data_column = torch.where(ok, residual[:, :, j] / scale, 0.0)  # (E, n)
         factor[:, :, k] = column
         residual -= data_column[:, :, None] * column[:, None, :]
         variance = (variance - column * column).clamp_min(0.0)

@@ -531,6 +531,12 @@ def test_select_basis_takes_the_point_that_explains_most_prior_variance_at_the_d
         taken.append(nxt)
     with pytest.raises(ValueError, match="between 1 and the 25"):
         select_basis(z, x, h.log_ell, 26)
+    # exact and 1e-9-close copies: every distinct location is taken before any second copy, all finite
+    copies = torch.cat([z[:10], z[:10], z[:10] + 1e-9, z[10:]])  # z[:10] x 3 (z[7] = z[3]), then 15 more
+    order = select_basis(copies, x, h.log_ell, 45).tolist()
+    assert sorted(order) == list(range(45))
+    locations = [((3 if i % 10 == 7 else i % 10) if i < 30 else i) for i in order[:24]]  # 24 distinct locations
+    assert len(set(locations)) == 24
 
 
 def test_planning_posterior_on_fewer_points_is_fitc_on_the_selected_ones():

@@ -107,6 +107,16 @@ def test_planning_horizon_and_cost_width_come_from_the_task_preset():
     assert (overridden.horizon, overridden.cost_width) == (100, 0.25)
 
 
+def test_fresh_start_tolerance_comes_from_the_task_preset_and_zero_turns_it_off():
+    from tasks.dmc_cartpole import DMCCartpole
+
+    assert Pilco(DMCCartpole().spec, {}, seed=0).fresh_start_tol == 0.05
+    assert Pilco(DMCCartpole().spec, {}, seed=0).options_used()["fresh_start_tol"] == 0.05
+    assert Pilco(DMCCartpole().spec, {"fresh_start_tol": "0"}, seed=0).fresh_start_tol is None
+    assert Pilco(CartPole().spec, {}, seed=0).fresh_start_tol is None
+    assert Pilco(CartPole().spec, {"fresh_start_tol": "0.1"}, seed=0).fresh_start_tol == 0.1
+
+
 def test_plan_with_noise_uses_the_tasks_measurement_noise_and_refuses_trig_policies():
     """The unicycle's policy sees raw states: planning adds the task's observation noise to its
     input. Cart-pole's sees sin/cos of the angle: a clear option error naming the fix."""
