@@ -70,14 +70,12 @@ def extract(checkpoint: str, out: str) -> None:
     import numpy as np
 
     from harness.checkpoint import load_checkpoint
-    from harness.discovery import load_learner, load_task
+    from harness.runner import config_from_identity, new_learner, prepare
     from plugins.pilco.learner import transitions
 
     ck = load_checkpoint(Path(checkpoint))
     ident = ck.identity
-    task = load_task(ident["task"])(**{k[5:]: v for k, v in ident.items() if k.startswith("task.")})
-    learner_options = {k[8:]: v for k, v in ident.items() if k.startswith("learner.") and v is not None}
-    learner = load_learner(ident["learner"])(task.spec, learner_options, ident["seed"])
+    learner = new_learner(prepare(config_from_identity(ident)))
     x, y = transitions(ck.interaction["episodes"], learner.layout)
     h = ck.learner["hyperparameters"]
     o = learner.options

@@ -23,7 +23,7 @@ that keeps a uniformly random subset of the same size. Each is scored on
 * **time**: CPU seconds of one J + dJ on one thread (the better of two), the planning arithmetic a
   trial repeats 150-300 times; and the CPU seconds the refinement of the pseudo-inputs took;
 * with ``--search N``: a policy search of at most ``N`` J + dJ evaluations from fresh initial
-  parameters (the learner's first-trial draw) under the posterior, and what the policy it finds
+  parameters (drawn as the learner draws its first controller, seeded by the run's seed) under the posterior, and what the policy it finds
   costs under the **whole** model and in simulation: what planning on fewer points loses in the
   policy it produces.
 """
@@ -50,16 +50,15 @@ from harness.evaluation import Evaluator  # noqa: E402
 from plugins.pilco.gp import predict_latent  # noqa: E402
 from harness.checkpoint import load_checkpoint  # noqa: E402
 from harness.datafile import is_legacy  # noqa: E402
-from harness.discovery import load_learner, load_task  # noqa: E402
 from harness.interaction import Episode  # noqa: E402
 from harness.migration import read_legacy_checkpoint  # noqa: E402
+from harness.runner import config_from_identity, new_learner, prepare  # noqa: E402
 from plugins.pilco.gp import GPModel, optimise_pseudo_inputs  # noqa: E402
 from plugins.pilco.learner import PilcoPolicy, transitions  # noqa: E402
 from plugins.pilco.objective import PolicyObjective  # noqa: E402
 from plugins.pilco.policy_search import optimise_policy  # noqa: E402
-from plugins.pilco.sparse import select_basis  # noqa: E402
 from plugins.pilco.posterior import GPPosterior  # noqa: E402
-from plugins.pilco.sparse import fitc_posterior  # noqa: E402
+from plugins.pilco.sparse import fitc_posterior, select_basis  # noqa: E402
 
 
 class CheckpointedRun:
@@ -79,9 +78,8 @@ class CheckpointedRun:
         parts = path.resolve().parts
         self.label = f"{parts[-4][:8]} t{checkpoint.trial}" if len(parts) >= 4 else f"{path.name}"
         self.seed, self.trial = identity["seed"], checkpoint.trial
-        self.task = load_task(identity["task"])(**{k[5:]: v for k, v in identity.items() if k.startswith("task.") and v is not None})
-        options = {k[8:]: v for k, v in identity.items() if k.startswith("learner.") and v is not None}
-        self.learner = load_learner(identity["learner"])(self.task.spec, options, seed=identity["seed"])
+        prep = prepare(config_from_identity(identity))
+        self.task, self.learner = prep.task, new_learner(prep)
         self.episodes = [Episode(**e) for e in checkpoint.interaction["episodes"]]
         state = checkpoint.learner
         x, y = transitions(self.episodes, self.learner.layout)
@@ -218,7 +216,8 @@ def main(argv: list[str] | None = None) -> None:
         "expected cost of the policy the run handed over at that trial (planned with the whole model); real: its mean cost "
         f"over the planning horizon in {args.episodes} simulated episodes. "
         "CPU s: one J + dJ on one thread (better of two); refine: CPU s of the pseudo-input refinement."
-        + (f" Search: {args.search} J + dJ evaluations from the learner's fresh initial parameters under that posterior; "
+        + (f" Search: {args.search} J + dJ evaluations from fresh initial parameters (the learner's draw, seeded by the run's seed) "
+           "under that posterior; "
            "the found policy's J under it, under the whole model, and its real cost and success rate over "
            f"{args.episodes} simulated episodes." if args.search else ""), "",
         "| run, trial | seed | points | real cost | planning basis | NLPD | SMSE | J | J - real | CPU s per J + dJ | refine CPU s |"

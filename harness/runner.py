@@ -124,6 +124,22 @@ def prepare(config: RunConfig) -> Prepared:
     return Prepared(config, task, learner_cls, learner_options, max_trials, budget)
 
 
+def new_learner(prep: Prepared) -> Learner:
+    """The run's learner, as :func:`run` builds it (seeded from the run's seed by :func:`~harness.seeding.derive_seeds`)."""
+    return prep.learner_cls(prep.task.spec, prep.learner_options, seed=derive_seeds(prep.config.seed)["learner"])
+
+
+def config_from_identity(identity: Mapping[str, Any]) -> RunConfig:
+    """The :class:`RunConfig` that :func:`run_identity` describes (a checkpoint's ``identity``); options
+    left unset there (``None``) are left out. For tools that read a run back from its checkpoint."""
+    def options(prefix: str) -> dict[str, Any]:
+        return {k[len(prefix):]: v for k, v in identity.items() if k.startswith(prefix) and v is not None}
+
+    return RunConfig(identity["learner"], identity["task"], identity["seed"], learner_options=options("learner."),
+                     task_options=options("task."), max_trials=identity.get("max_trials"),
+                     budget_seconds=identity.get("budget_seconds"), eval_episodes=identity.get("eval_episodes", 10))
+
+
 def run_params(prep: Prepared) -> dict[str, Any]:
     """Everything that defines the run, flat, for the tracker's params."""
     cfg = prep.config
@@ -257,7 +273,7 @@ def run(
     workdir = Path(tempfile.mkdtemp(prefix="harness-run-")) if workdir is None else Path(workdir)
     workdir.mkdir(parents=True, exist_ok=True)
 
-    learner = prep.learner_cls(spec, prep.learner_options, seed=seeds["learner"])
+    learner = new_learner(prep)
     checkpoint: Checkpoint | None = None
     if resume_run_id is not None:
         if not prep.learner_cls.supports_resume:
