@@ -70,14 +70,15 @@ def extract(checkpoint: str, out: str) -> None:
     import numpy as np
 
     from harness.checkpoint import load_checkpoint
+    from harness.interaction import Episode
     from harness.runner import config_from_identity, new_learner, prepare
     from plugins.pilco.learner import transitions
 
     ck = load_checkpoint(Path(checkpoint))
     ident = ck.identity
     learner = new_learner(prepare(config_from_identity(ident)))
-    x, y = transitions(ck.interaction["episodes"], learner.layout)
-    h = ck.learner["hyperparameters"]
+    x, y = transitions([Episode(**e) for e in ck.interaction["episodes"]], learner.layout)  # a checkpoint holds plain data
+    h = {k: np.asarray(v) for k, v in ck.learner["hyperparameters"].items()}
     o = learner.options
     settings = {"sparse_threshold": learner.preset.sparse_threshold, "num_pseudo": learner.num_pseudo,
                 "gp_max_evals": o["gp_max_evals"], "gp_fitc_evals": o["gp_fitc_evals"], "gp_hyper_subset": o["gp_hyper_subset"],
@@ -85,8 +86,8 @@ def extract(checkpoint: str, out: str) -> None:
                 "source": f"{Path(checkpoint).name} of a {ident['learner']} run on {ident['task']} (seed {ident['seed']}), "
                           f"data before trial {ck.trial + 1}"}
     Path(out).parent.mkdir(parents=True, exist_ok=True)
-    np.savez_compressed(out, x=x, y=y, log_ell=h.log_ell.numpy(), log_alpha=h.log_alpha.numpy(), log_sigma=h.log_sigma.numpy(),
-                        pseudo_inputs=h.pseudo_inputs.numpy(), settings=json.dumps(settings))
+    np.savez_compressed(out, x=x, y=y, log_ell=h["log_ell"], log_alpha=h["log_alpha"], log_sigma=h["log_sigma"],
+                        pseudo_inputs=h["pseudo_inputs"], settings=json.dumps(settings))
     print(f"wrote {out}: n = {x.shape[0]}, d = {x.shape[1]}, E = {y.shape[1]}; {settings['source']}")
 
 
