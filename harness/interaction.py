@@ -112,6 +112,9 @@ class Interaction:
         self._last_obs: np.ndarray | None = None
         self._seed: int | None = int(seed)
         self._on_episode: list[Callable[[Episode], None]] = []
+        #: how the running episode was started (the seed and the env's RNG before its reset), kept so
+        #: that a checkpoint taken before its first step can start it again exactly
+        self._started_from: dict[str, Any] | None = None
 
     # -- counters -------------------------------------------------------------------------
     @property
@@ -149,6 +152,7 @@ class Interaction:
     def reset(self) -> np.ndarray:
         """Start a new episode; returns the first observation ``(D,)``. Not counted."""
         self._finish_episode()
+        self._started_from = {"seed": self._seed, "env_rng": env_rng_state(self._env) if self._seed is None else None}
         obs, info = self._env.reset(seed=self._seed)
         self._seed = None
         obs = np.asarray(obs, dtype=np.float64)
@@ -212,12 +216,24 @@ class Interaction:
                 callback(episode)
         self._current = None
 
+    @property
+    def can_checkpoint(self) -> bool:
+        """Whether :meth:`state_dict` can be taken now: between episodes, or after a reset before the
+        episode's first step (a step changes the system's state, which is not saved)."""
+        return self._current is None or not self._current.actions
+
     def state_dict(self) -> dict[str, Any]:
-        """Counters, recorded episodes (each a dict of its fields) and the environment's RNG state
-        (between episodes only), as plain data (:mod:`harness.datafile`)."""
-        if self._current is not None:
-            raise InteractionError("cannot checkpoint an interaction in the middle of an episode")
+        """Counters, recorded episodes (each a dict of its fields) and the environment's RNG state, as
+        plain data (:mod:`harness.datafile`). Between episodes, or with an episode started and no step
+        taken: then as it was before that reset (where stable-baselines3 hands over, its vectorised env
+        having reset at the episode's end; after the resume its first ``reset`` draws the same start)."""
+        if not self.can_checkpoint:
+            raise InteractionError("cannot checkpoint an interaction in the middle of an episode "
+                                   "(only between episodes, or after a reset before the first step)")
         episodes = [{f.name: getattr(ep, f.name) for f in fields(Episode)} for ep in self._episodes]
+        if self._current is not None:  # started, not stepped: saved as it was before its reset
+            return {"steps": self._steps, "episodes": episodes, "seed": self._started_from["seed"],
+                    "env_rng": self._started_from["env_rng"]}
         return {"steps": self._steps, "episodes": episodes, "seed": self._seed, "env_rng": env_rng_state(self._env)}
 
     def load_state_dict(self, state: dict[str, Any]) -> None:

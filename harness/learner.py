@@ -67,8 +67,13 @@ class Learner(ABC):
     #: top-level modules this plugin needs at use time (checked by discovery, e.g. ``("dm_control",)``).
     requires: ClassVar[tuple[str, ...]] = ()
     #: whether :meth:`state_dict`/:meth:`load_state_dict` capture everything needed to continue
-    #: a run after a hand-over (then the harness checkpoints after every trial and can resume)
+    #: a run after a hand-over (then the harness checkpoints after every trial where the interaction
+    #: allows it, :attr:`Interaction.can_checkpoint`, and can resume)
     supports_resume: ClassVar[bool] = False
+    #: how many of a run's newest checkpoints its store keeps (``None``: all, e.g. for benchmarks
+    #: that read a run's model at an earlier trial; a learner whose state is large, such as a
+    #: replay buffer, keeps a few: the newest, and the one before in case the newest was cut by a crash)
+    keep_checkpoints: ClassVar[int | None] = None
     #: limits used when the user gives neither --max-trials nor --budget-seconds
     default_max_trials: ClassVar[int | None] = 20
     default_budget_seconds: ClassVar[float | None] = None

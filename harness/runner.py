@@ -348,9 +348,10 @@ def run(
                 # resume logs what the checkpoint holds and the store lacks (_log_missing_trials)
                 with held_interrupts():
                     _log_trial_artifacts(tracker, learner, policy, interaction, workdir, trial)
-                    if learner.supports_resume and not last:
+                    if learner.supports_resume and not last and interaction.can_checkpoint:
                         _save_checkpoint(tracker, workdir, Checkpoint(
-                            identity, trial, history, interaction.state_dict(), learner.state_dict(), global_rng_state()))
+                            identity, trial, history, interaction.state_dict(), learner.state_dict(), global_rng_state()),
+                            learner.keep_checkpoints)
                     tracker.log_metrics(_trial_metrics(record), step=trial)
                 progress.update({**record, "max_trials": prep.max_trials}, completed=trial if prep.max_trials else interaction.seconds)
                 if result.solved:
@@ -420,13 +421,19 @@ def _log_missing_trials(tracker: Tracker, history: Sequence[Mapping[str, float]]
             tracker.log_metrics(_trial_metrics(record), step=int(record["trial"]))
 
 
-def _save_checkpoint(tracker: Tracker, workdir: Path, checkpoint: Checkpoint) -> None:
+def _save_checkpoint(tracker: Tracker, workdir: Path, checkpoint: Checkpoint, keep: int | None = None) -> None:
+    """Store ``checkpoint``; with ``keep``, remove the store's checkpoints older than the newest ``keep``."""
     folder = workdir / "checkpoints"
     folder.mkdir(exist_ok=True)
     path = save_checkpoint(checkpoint, folder / checkpoint_name(checkpoint.trial))
     tracker.log_artifact(path, "checkpoints")
-    previous = folder / checkpoint_name(checkpoint.trial - 1)
-    previous.unlink(missing_ok=True)  # the tracker keeps its copy; the local one is no longer needed
+    for old in folder.glob(f"{CHECKPOINT_PREFIX}*"):
+        if old != path:
+            old.unlink(missing_ok=True)  # the tracker keeps its copy; the local one is no longer needed
+    if keep is not None:
+        stored = trial_files(tracker.list_artifacts("checkpoints"), CHECKPOINT_PREFIX)
+        for name in list(stored.values())[:-keep]:
+            tracker.delete_artifact(name)
 
 
 def _log_trial_artifacts(tracker: Tracker, learner: Learner, policy: Any, interaction: Interaction, workdir: Path, trial: int) -> None:

@@ -43,6 +43,8 @@ class Tracker(Protocol):
 
     def list_artifacts(self, artifact_path: str) -> list[str]: ...
 
+    def delete_artifact(self, name: str) -> None: ...
+
     def fetch_artifact(self, name: str, destination: Path) -> Path: ...
 
     def logged_steps(self, key: str) -> set[int]: ...
@@ -110,6 +112,9 @@ class MemoryTracker:
     def list_artifacts(self, artifact_path: str) -> list[str]:
         source = self.root / artifact_path
         return [f"{artifact_path}/{f.name}" for f in sorted(source.glob("*"))] if source.exists() else []
+
+    def delete_artifact(self, name: str) -> None:
+        (self.root / name).unlink(missing_ok=True)
 
     def fetch_artifact(self, name: str, destination: Path) -> Path:
         import shutil
@@ -220,6 +225,14 @@ class MlflowTracker:
     def list_artifacts(self, artifact_path: str) -> list[str]:
         """Names of the run's artifacts under ``artifact_path``."""
         return sorted(a.path for a in self.client.list_artifacts(self.run_id, artifact_path))
+
+    def delete_artifact(self, name: str) -> None:
+        """Remove one artifact file of the run (``checkpoints/ckpt_trial003.ckpt``); absent: nothing."""
+        from mlflow.store.artifact.artifact_repository_registry import get_artifact_repository
+
+        with self._writing(f"delete {name}"):
+            run = get_run(self.client, self.run_id, self.tracking_uri)
+            get_artifact_repository(run.info.artifact_uri).delete_artifacts(name)
 
     def fetch_artifact(self, name: str, destination: Path) -> Path:
         """Download one artifact of the run into ``destination``."""

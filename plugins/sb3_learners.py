@@ -27,6 +27,10 @@ Hyperparameters: named presets per task (:data:`SAC_PRESETS`, :data:`PPO_PRESETS
 values are attached to the run as ``sb3_hyperparameters.json`` at the first hand-over.
 stable-baselines3 and torch are imported inside :meth:`SB3Learner.learn`, so ``harness list``
 stays fast.
+
+Resume: both are checkpointed at every hand-over on an episode boundary (SAC always; PPO unless an
+early-terminated episode puts its rollout's end inside an episode) and continue exactly as the
+uninterrupted run (:meth:`SB3Learner.state_dict`; the store keeps the two newest checkpoints).
 """
 
 from __future__ import annotations
@@ -256,6 +260,8 @@ class SB3Learner(Learner):
 
     extra = "sb3"
     requires = ("stable_baselines3",)
+    supports_resume = True
+    keep_checkpoints = 2  # SAC's replay buffer: up to ~100 bytes per step of interaction
     default_max_trials = None
     algorithm: ClassVar[str] = ""
     presets: ClassVar[dict[str, dict[str, Any]]] = {}
@@ -305,12 +311,20 @@ class SB3Learner(Learner):
     def learn(self, interaction: Interaction) -> Iterator[Policy]:
         import torch
 
+        from harness.checkpoint import global_rng_state, set_global_rng_state
+
         torch.set_num_threads(int(self.options["torch_threads"]))
         hp = self.hyperparameters()
+        rng = global_rng_state()  # a resume's, restored by the harness: building the model reseeds
         model = self.build_model(make_agent_env(interaction.as_env(), self.spec), hp)
+        self._model = model
+        if self._resume_state is not None:
+            self._restore(model, self._resume_state)
+            set_global_rng_state(rng)
         policy = SB3Policy(model.policy, self.spec)  # the live network: trained further after each hand-over
         hp_file = self._write_hyperparameters(hp)
-        self.artifacts.append(hp_file)  # the harness attaches it after the first hand-over
+        if self._resume_state is None:
+            self.artifacts.append(hp_file)  # the harness attaches it after the first hand-over
         chunk = int(hp["eval_every_steps"])
         try:
             while True:
@@ -325,6 +339,68 @@ class SB3Learner(Learner):
                 yield policy
         finally:
             shutil.rmtree(hp_file.parent, ignore_errors=True)
+
+    # -- resuming -------------------------------------------------------------------------
+    # A checkpoint holds what SB3's own save/load_replay_buffer would, as plain data (harness.datafile;
+    # no cloudpickle): the networks' and optimisers' state_dicts and SB3's torch variables
+    # (``get_parameters`` / ``_get_torch_save_params``: SAC's log_ent_coef), the counters and
+    # episode statistics ``learn`` continues from, the action space's RNG (SAC's random warm-up
+    # actions) and SAC's replay buffer (the filled part). The global RNGs are the harness's; the
+    # environment continues from the interaction's checkpoint: a hand-over on an episode boundary
+    # (SAC always; PPO when its rollout ends one) leaves the next episode reset and not yet stepped,
+    # and SB3's first ``env.reset()`` after the resume is given that episode again.
+
+    _REPLAY_ARRAYS = ("observations", "next_observations", "actions", "rewards", "dones", "timeouts")
+
+    def state_dict(self) -> dict[str, Any]:
+        """The SB3 model at its last hand-over (empty before the first); see the comment above."""
+        model = getattr(self, "_model", None)
+        if model is None:
+            return {}
+        _, variables = model._get_torch_save_params()
+        state: dict[str, Any] = {
+            "parameters": _detached(model.get_parameters()),
+            "variables": {name: _attribute(model, name).detach().clone() for name in variables},
+            "num_timesteps": int(model.num_timesteps),
+            "n_updates": int(model._n_updates),
+            "episode_num": int(model._episode_num),
+            "ep_info": [dict(info) for info in (model.ep_info_buffer or [])],
+            "ep_success": list(model.ep_success_buffer or []),
+            "action_space_rng": model.action_space.np_random.bit_generator.state,
+            "replay": None,
+        }
+        buffer = getattr(model, "replay_buffer", None)
+        if buffer is not None:
+            filled = buffer.buffer_size if buffer.full else buffer.pos
+            state["replay"] = {"pos": int(buffer.pos), "full": bool(buffer.full),
+                               **{name: getattr(buffer, name)[:filled].copy() for name in self._REPLAY_ARRAYS}}
+        return state
+
+    def _restore(self, model: Any, state: dict[str, Any]) -> None:
+        """Put :meth:`state_dict` into a freshly built ``model`` (same hyperparameters)."""
+        import torch
+
+        model.set_parameters(state["parameters"], exact_match=True, device="cpu")
+        for name, value in state["variables"].items():
+            with torch.no_grad():
+                _attribute(model, name).copy_(value)
+        model.num_timesteps = int(state["num_timesteps"])
+        model._n_updates = int(state["n_updates"])
+        model._episode_num = int(state["episode_num"])
+        from collections import deque
+
+        model.ep_info_buffer = deque(state["ep_info"], maxlen=model._stats_window_size)
+        model.ep_success_buffer = deque(state["ep_success"], maxlen=model._stats_window_size)
+        model.action_space.np_random.bit_generator.state = state["action_space_rng"]
+        replay = state["replay"]
+        if replay is not None:
+            buffer = model.replay_buffer
+            filled = len(replay["rewards"])
+            if filled > buffer.buffer_size:
+                raise ValueError(f"a replay buffer of {filled} steps does not fit this run's buffer_size {buffer.buffer_size}")
+            for name in self._REPLAY_ARRAYS:
+                getattr(buffer, name)[:filled] = replay[name]
+            buffer.pos, buffer.full = int(replay["pos"]), bool(replay["full"])
 
     def _write_hyperparameters(self, hp: dict[str, Any]) -> Path:
         directory = Path(tempfile.mkdtemp(prefix=f"harness-{self.name}-"))
@@ -385,6 +461,26 @@ class SB3Learner(Learner):
 #: others are classes (activation, features extractor, optimiser: SB3's defaults here), spaces and a schedule
 POLICY_KWARGS = ("net_arch", "use_sde", "log_std_init", "use_expln", "clip_mean", "full_std", "squash_output", "ortho_init",
                  "n_critics", "share_features_extractor", "normalize_images")
+
+
+def _attribute(obj: Any, dotted: str) -> Any:
+    """``obj.a.b`` for ``"a.b"``."""
+    for name in dotted.split("."):
+        obj = getattr(obj, name)
+    return obj
+
+
+def _detached(tree: Any) -> Any:
+    """``tree`` (dicts, lists, tensors) with every tensor detached and copied: plain data."""
+    import torch
+
+    if isinstance(tree, torch.Tensor):
+        return tree.detach().clone()
+    if isinstance(tree, dict):
+        return {k: _detached(v) for k, v in tree.items()}
+    if isinstance(tree, (list, tuple)):
+        return type(tree)(_detached(v) for v in tree)
+    return tree
 
 
 def _no_learning(progress_remaining: float) -> float:

@@ -126,6 +126,10 @@ def run_cell(job: CellJob) -> CellOutcome:
             self.holds_lease(f"store {os.path.basename(path)}")
             super().log_artifact(path, artifact_path)
 
+        def delete_artifact(self, name):
+            self.holds_lease(f"delete {name}")
+            super().delete_artifact(name)
+
         def finish(self, status):
             self.holds_lease(f"mark its run {status}")
             super().finish(status)

@@ -49,3 +49,21 @@ def test_a_store_file_replaced_under_a_run_is_named_with_the_way_back(tmp_path):
     assert "refused to log the metrics of step 2" in message and "attempt to write a readonly database" in message
     assert "replaced or deleted while this process had it open" in message
     assert f"--resume {run_id}" in message and len(message.splitlines()) == 1
+
+
+def test_a_run_deletes_an_artifact_it_no_longer_needs(mlflow_uri, tmp_path):
+    """A learner that keeps only its newest checkpoints (``Learner.keep_checkpoints``) deletes the older
+    ones from the store: the file is gone from the run's artifacts and from the disk."""
+    from harness.tracking import MlflowTracker
+
+    tracker = MlflowTracker(mlflow_uri)
+    tracker.start("cartpole", "sac-cartpole-s0", {"seed": 0}, {})
+    for trial in (1, 2):
+        path = tmp_path / f"ckpt_trial00{trial}.ckpt"
+        path.write_bytes(b"state %d" % trial)
+        tracker.log_artifact(path, "checkpoints")
+    tracker.delete_artifact("checkpoints/ckpt_trial001.ckpt")
+    tracker.delete_artifact("checkpoints/ckpt_trial009.ckpt")  # absent: nothing happens
+    assert tracker.list_artifacts("checkpoints") == ["checkpoints/ckpt_trial002.ckpt"]
+    fetched = tracker.fetch_artifact("checkpoints/ckpt_trial002.ckpt", tmp_path / "back")
+    assert fetched.read_bytes() == b"state 2"

@@ -249,3 +249,56 @@ def test_hyperparameters_are_attached_at_the_first_handover(cartpole):
     assert saved["algorithm"] == "SAC" and saved["task"] == "cartpole"
     assert saved["net_width"] == 16 and saved["eval_every_steps"] == 40 and saved["learning_rate"] == 1e-3
     assert not path.exists()  # the temporary copy is removed when the learner is closed
+
+
+# -- resuming ---------------------------------------------------------------------------------
+
+NOT_WALL = lambda history: [{k: v for k, v in r.items() if "second" not in k or k == "interaction_seconds"} for r in history]
+
+
+@pytest.mark.parametrize("learner, options", [
+    ("sac", {**SAC_SMALL, "buffer_size": 1000}),
+    ("sac", {**SAC_SMALL, "buffer_size": 1000, "learning_starts": 150}),  # resumed in the random warm-up (steps 120-150)
+    ("ppo", PPO_SMALL)])
+def test_resumed_run_equals_uninterrupted_run_and_keeps_two_checkpoints(sb3_plugins, learner, options):
+    """Interrupted after trial 3 (SAC: past its random warm-up, replay buffer and entropy coefficient in
+    use; PPO: gSDE noise, Adam moments) and resumed from trial 3's checkpoint: every later trial's
+    record (evaluation, SB3's losses and counters) equals the uninterrupted run's exactly."""
+    from tests.harness.trackers import InterruptAt
+
+    config = RunConfig(learner, "cartpole", seed=6, learner_options=options, max_trials=5, eval_episodes=2)
+    reference = runner.run(config)
+    tracker = InterruptAt(3)
+    with pytest.raises(KeyboardInterrupt):
+        runner.run(config, tracker=tracker)
+    assert tracker.list_artifacts("checkpoints") == ["checkpoints/ckpt_trial002.ckpt", "checkpoints/ckpt_trial003.ckpt"]
+    resumed = runner.run(config, tracker=tracker, resume_run_id=tracker.run_id)
+    assert tracker.tags["git_sha.resumed_at_trial_4"]
+    assert NOT_WALL(resumed.history) == NOT_WALL(reference.history)
+    assert resumed.interaction_seconds == reference.interaction_seconds
+    assert any("sb3_" in k and "loss" in k for k in resumed.history[-1])  # learning happened after the resume
+    assert tracker.list_artifacts("checkpoints") == ["checkpoints/ckpt_trial003.ckpt", "checkpoints/ckpt_trial004.ckpt"]
+
+
+def test_sac_checkpoint_holds_the_filled_replay_buffer(cartpole):
+    learner, _, generator, interaction = _first_handover(SACLearner, {**SAC_SMALL, "buffer_size": 1000}, cartpole, seed=1)
+    state = learner.state_dict()
+    generator.close()
+    interaction.close()
+    replay = state["replay"]
+    assert replay["pos"] == 40 and not replay["full"]
+    assert replay["observations"].shape == (40, 1, 5) and replay["actions"].shape == (40, 1, 1)
+    assert set(state["variables"]) == {"log_ent_coef"}
+    assert set(state["parameters"]) == {"policy", "actor.optimizer", "critic.optimizer", "ent_coef_optimizer"}
+
+
+def test_a_handover_in_the_middle_of_an_episode_stores_no_checkpoint(sb3_plugins):
+    """PPO's rollout of 60 steps on 40-step episodes hands over mid-episode at 60 and 180 steps: the
+    system's state there is not saved, so only trial 2's (120 steps, an episode boundary) is stored."""
+    from harness.tracking import MemoryTracker
+
+    tracker = MemoryTracker()
+    result = runner.run(RunConfig("ppo", "cartpole", seed=1, learner_options={**PPO_SMALL, "n_steps": 60, "batch_size": 30},
+                                  max_trials=4, eval_episodes=1), tracker=tracker)
+    assert result.trials == 4 and result.interaction_seconds == pytest.approx(24.0)
+    assert tracker.list_artifacts("checkpoints") == ["checkpoints/ckpt_trial002.ckpt"]
