@@ -30,25 +30,36 @@ def task_objective(task_name: str, options: dict[str, str], n: int, horizon: int
     """The ``pilco`` learner's :class:`~plugins.pilco.objective.PolicyObjective` on ``task_name``
     with a full GP on ``n`` random-rollout transitions and a ``horizon``-step J."""
     from harness.discovery import load_task
-    from harness.interaction import Interaction
     from plugins.pilco.gp import full_posterior
-    from plugins.pilco.learner import Pilco, transitions
+    from plugins.pilco.learner import Pilco
     from plugins.pilco.objective import PolicyObjective
-    from plugins.random_learner import UniformRandomPolicy
 
     task = load_task(task_name)(**options)
     spec = task.spec
     learner = Pilco(spec, {}, seed)
+    X, Y, log_ell, log_alpha, log_sigma = random_rollout_data(task, learner.layout, n, seed)
+    posterior = full_posterior(X, Y, log_ell, log_alpha, log_sigma)
+    controller = learner._new_controller(torch.Generator().manual_seed(seed))
+    return PolicyObjective(controller, posterior, learner.layout, spec.cost, spec.init_mean, spec.init_cov, horizon)
+
+
+def random_rollout_data(task, layout, n: int, seed: int = 0):
+    """``X (n, d)``, ``Y (n, E)`` from uniformly random rollouts of ``task`` (the GP's inputs and targets
+    under ``layout``), and log-hyperparameters from the data's scales: ``log_ell (E, d)`` (input std),
+    ``log_alpha (E,)`` (target std), ``log_sigma = log_alpha - log 100``."""
+    from harness.interaction import Interaction
+    from plugins.pilco.learner import transitions
+    from plugins.random_learner import UniformRandomPolicy
+
+    spec = task.spec
     interaction = Interaction(task.make_env(), spec, seed=seed)
     explore = UniformRandomPolicy(spec.action_low, spec.action_high, seed)
-    x, y = transitions(interaction.episodes, learner.layout) if interaction.episodes else (np.zeros((0, 1)), None)
+    x = np.zeros((0, 1))
     while x.shape[0] < n:
         interaction.rollout(explore)
-        x, y = transitions(interaction.episodes, learner.layout)
+        x, y = transitions(interaction.episodes, layout)
     X, Y = torch.as_tensor(x[:n]), torch.as_tensor(y[:n])
     e = Y.shape[1]
     log_ell = torch.log(X.std(0).clamp_min(1e-3)).expand(e, X.shape[1]).clone()
     log_alpha = torch.log(Y.std(0).clamp_min(1e-6))
-    posterior = full_posterior(X, Y, log_ell, log_alpha, log_alpha - np.log(100.0))
-    controller = learner._new_controller(torch.Generator().manual_seed(seed))
-    return PolicyObjective(controller, posterior, learner.layout, spec.cost, spec.init_mean, spec.init_cov, horizon)
+    return X, Y, log_ell, log_alpha, log_alpha - np.log(100.0)

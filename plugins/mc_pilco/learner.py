@@ -74,6 +74,10 @@ class McPilco(Learner):
         Option("planning_horizon", int, None, "simulated steps per particle (default: the PILCO preset's, else the task horizon)", low=1),
         Option("cost_width", float, None, "cost width used in planning (default: the PILCO preset's, else the task's)", low=1e-6),
         Option("sparse_threshold", int, None, "FITC above this many data points (default: the PILCO task preset)", low=1),
+        Option("planning_basis", int, None, "particles go through a FITC posterior on at most this many of the model's basis "
+               "points (chosen greedily where they explain the kernel at the data best; same hyperparameters and data), "
+               "as MC-PILCO's own subset-of-data GP keeps the search's cost down: an Adam step's cost grows with their "
+               "square (default: all)", low=1),
         Option("gp_max_evals", int, 300, "GP hyperparameter L-BFGS evaluations per trial", low=0),
         Option("gp_fitc_evals", int, 100, "FITC pseudo-input L-BFGS evaluations per trial (3x the first time)", low=0),
         Option("particles", int, 400, "particles per estimate of J (paper: 400)", low=1),
@@ -134,7 +138,8 @@ class McPilco(Learner):
             x, y = transitions(interaction.episodes, self.layout)
             fit = model.fit(x, y, warm_start=hyperparameters, seed=self.seed + trial)
             hyperparameters = model.hyperparameters
-            objective = ParticleObjective(controller, model.posterior().detach(), self.layout, cost, init_mean, init_cov,
+            posterior = model.posterior(max_basis=o["planning_basis"]).detach()
+            objective = ParticleObjective(controller, posterior, self.layout, cost, init_mean, init_cov,
                                           self.horizon, o["particles"])
             search = optimise_particles(objective, max_steps=o["max_steps"], lr=o["lr"], dropout=o["dropout"],
                                         dropout_step=o["dropout_step"], lr_decay=o["lr_decay"], window=o["window"],
@@ -145,6 +150,7 @@ class McPilco(Learner):
                 "policy_opt_seconds": search.seconds, "policy_steps": float(search.steps),
                 "policy_skipped_steps": float(search.skipped), "dropout_reductions": float(search.reductions),
                 "final_dropout": search.final_dropout, "planning_horizon": float(self.horizon),
+                "planning_basis": float(posterior.inputs.shape[0]),
                 "policy_parameters": float(sum(p.numel() for p in controller.parameters())),
             }
             if not math.isfinite(search.J_after):

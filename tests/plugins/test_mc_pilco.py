@@ -8,6 +8,8 @@ parameters), and the learner against the plugin contract, seeding and resume.
 
 from __future__ import annotations
 
+import dataclasses
+
 import numpy as np
 import pytest
 import torch
@@ -126,3 +128,16 @@ def test_same_seed_same_run_and_resume_equals_uninterrupted() -> None:
         run(config, tracker=interrupted)
     resumed = run(config, tracker=interrupted, resume_run_id=interrupted.run_id)
     assert strip(resumed.history) == strip(reference.history)
+
+
+def test_planning_basis_limits_the_points_the_particles_go_through() -> None:
+    """Cart-pole with 10-step episodes: 2 trials give 20 transitions; with planning_basis=8 the particles
+    go through a posterior on 8 basis points (logged), with the default through all the data's."""
+    config = RunConfig("mc-pilco", "cartpole", seed=1, learner_options=TINY, task_options={"horizon": 10}, max_trials=2,
+                       eval_episodes=1)
+    full, reduced = MemoryTracker(), MemoryTracker()
+    run(config, tracker=full)
+    run(dataclasses.replace(config, learner_options={**TINY, "planning_basis": "8"}), tracker=reduced)
+    assert [v for _, v in full.metrics["planning_basis"]] == [10.0, 20.0]
+    assert [v for _, v in reduced.metrics["planning_basis"]] == [8.0, 8.0]
+    assert full.metrics["J_after"] != reduced.metrics["J_after"]

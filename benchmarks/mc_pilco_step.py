@@ -1,0 +1,127 @@
+"""What one MC-PILCO Adam step costs, and what planning on fewer basis points changes in its estimate.
+
+Usage::
+
+    .venv/bin/python benchmarks/mc_pilco_step.py [--tasks cartpole unicycle] [--repeats 5]
+
+For each task: a dynamics GP on ``n`` transitions of uniformly random rollouts of the real task, with
+hyperparameters set from the data's scales (as ``benchmarks/task_objectives.py`` does: they do not
+change the cost of a step), the task's preset controller fresh from seed 0, and ``mc-pilco``'s
+particle objective at its defaults (400 particles, the preset's planning horizon, dropout 0.25). Each
+row is one posterior: the full GP on all ``n`` points, or the FITC posterior on ``planning_basis``
+of them that the learner's option builds (``GPModel.posterior(max_basis)``). Columns:
+
+* CPU ms per Adam step (the estimate J_hat and its gradient: forward and backward), median of
+  ``--repeats`` after a warm-up, one torch thread, and what the learner's default search of at most
+  1500 steps costs at that rate;
+* J_hat with dropout 0 on one fixed set of random numbers, and its difference from the full GP's on
+  the same numbers, beside the Monte-Carlo standard error of J_hat itself (the spread over 20 sets of
+  random numbers / sqrt(20)): a reduced basis whose change is well inside that error changes the
+  search's signal less than its own noise does. The controller is fresh (the learner's first
+  search starts there); on cart-pole, where it leaves the pendulum hanging, every step costs ~1 and
+  J_hat says little about the model; on the unicycle (``init=code``, starting upright) it falls at
+  varying times and J_hat is informative.
+
+Writes ``results/benchmarks/mc_pilco_step.md``.
+"""
+
+from __future__ import annotations
+
+import argparse
+import statistics
+import sys
+import time
+from pathlib import Path
+
+ROOT = Path(__file__).resolve().parents[1]
+sys.path.insert(0, str(ROOT))
+
+import numpy as np  # noqa: E402
+import torch  # noqa: E402
+
+from benchmarks.report_file import command_line, load_average, machine_line, write_report  # noqa: E402
+from benchmarks.task_objectives import random_rollout_data  # noqa: E402
+
+#: task -> (task options, transitions n, planning_basis values to compare)
+SIZES: dict[str, tuple[dict[str, str], int, tuple[int, ...]]] = {
+    "cartpole": ({}, 400, (300, 200, 100, 50)),
+    "unicycle": ({"init": "code"}, 300, (200, 100, 50)),
+}
+
+
+def particle_objectives(task_name: str, options: dict[str, str], n: int, bases: tuple[int, ...], particles: int):
+    """``{label: ParticleObjective}``: the full GP on ``n`` random-rollout transitions, then FITC on each basis size."""
+    from harness.discovery import load_task
+    from plugins.mc_pilco.learner import McPilco
+    from plugins.mc_pilco.particles import ParticleObjective
+    from plugins.pilco.cost import CostMoments
+    from plugins.pilco.gp import full_posterior
+    from plugins.pilco.learner import initial_controller
+    from plugins.pilco.sparse import reduced_posterior
+
+    task = load_task(task_name)(**options)
+    spec = task.spec
+    learner = McPilco(spec, {"particles": particles}, 0)
+    X, Y, log_ell, log_alpha, log_sigma = random_rollout_data(task, learner.layout, n)
+    posteriors = {f"all {n} (full GP)": full_posterior(X, Y, log_ell, log_alpha, log_sigma)}
+    for m in bases:
+        posteriors[f"{m} (FITC)"] = reduced_posterior(X, Y, X, log_ell, log_alpha, log_sigma, m)
+    cost = CostMoments(spec.cost, learner.cost_width)
+    mean, cov = torch.as_tensor(spec.init_mean, dtype=torch.float64), torch.as_tensor(spec.init_cov, dtype=torch.float64)
+    objectives = {}
+    for label, posterior in posteriors.items():
+        controller = initial_controller(spec, learner.preset, learner.layout, "trapezoid", torch.Generator().manual_seed(0))
+        objectives[label] = ParticleObjective(controller, posterior, learner.layout, cost, mean, cov, learner.horizon, particles)
+    return objectives, learner.horizon
+
+
+def step_cpu_ms(objective, repeats: int) -> float:
+    generator = torch.Generator().manual_seed(0)
+    objective.value(generator, 0.25).backward()  # warm-up
+    times = []
+    for _ in range(repeats):
+        start = time.process_time()
+        objective.value(generator, 0.25).backward()
+        times.append(time.process_time() - start)
+    return 1e3 * statistics.median(times)
+
+
+def estimates(objective, sets: int = 20) -> np.ndarray:
+    with torch.no_grad():
+        return np.array([float(objective.value(torch.Generator().manual_seed(100 + s))) for s in range(sets)])
+
+
+def main(argv: list[str] | None = None) -> None:
+    parser = argparse.ArgumentParser(description=__doc__.splitlines()[0])
+    parser.add_argument("--tasks", nargs="+", default=list(SIZES), choices=list(SIZES))
+    parser.add_argument("--repeats", type=int, default=5)
+    parser.add_argument("--particles", type=int, default=400)
+    parser.add_argument("--out", type=Path, default=ROOT / "results" / "benchmarks" / "mc_pilco_step.md")
+    args = parser.parse_args(argv)
+    torch.set_num_threads(1)
+    load = load_average()
+    lines = ["# MC-PILCO: CPU per Adam step, and the estimate on fewer basis points", "",
+             f"Command: `{command_line(__file__, argv)}`  ", f"{machine_line(load)}  ",
+             f"{args.particles} particles, dropout 0.25 in the timed steps; J_hat without dropout; one torch thread.", "",
+             "| task | planning basis | horizon | CPU ms per Adam step | speed-up | a search of 1500 steps (the default), CPU min "
+             "| J_hat (20 sets of random numbers: mean) | its Monte-Carlo standard error "
+             "| J_hat minus the full GP's, same random numbers (mean [min, max]) |",
+             "|---|---|---|---|---|---|---|---|---|"]
+    for task in args.tasks:
+        options, n, bases = SIZES[task]
+        objectives, horizon = particle_objectives(task, options, n, bases, args.particles)
+        reference = None
+        base_ms = None
+        for label, objective in objectives.items():
+            ms = step_cpu_ms(objective, args.repeats)
+            values = estimates(objective)
+            if reference is None:
+                reference, base_ms = values, ms
+            diff = values - reference
+            lines.append(f"| {task} | {label} | {horizon} | {ms:.0f} | {base_ms / ms:.1f}x | {1500 * ms / 6e4:.0f} | {values.mean():.3f} | "
+                         f"{values.std(ddof=1) / np.sqrt(len(values)):.3f} | {diff.mean():+.3f} [{diff.min():+.3f}, {diff.max():+.3f}] |")
+    write_report(lines, args.out)
+
+
+if __name__ == "__main__":
+    main()
