@@ -74,6 +74,11 @@ class Learner(ABC):
     #: that read a run's model at an earlier trial; a learner whose state is large, such as a
     #: replay buffer, keeps a few: the newest, and the one before in case the newest was cut by a crash)
     keep_checkpoints: ClassVar[int | None] = None
+    #: checkpoint after a trial only once this many wall seconds have passed since the last one
+    #: (``None``: after every trial); for learners with many short trials and a state that grows with
+    #: the interaction (the recorded episodes, a replay buffer). A stop asked with ``kill -USR1``
+    #: always checkpoints the trial it stops after; a crash resumes from the last checkpoint written.
+    checkpoint_every_seconds: ClassVar[float | None] = None
     #: limits used when the user gives neither --max-trials nor --budget-seconds
     default_max_trials: ClassVar[int | None] = 20
     default_budget_seconds: ClassVar[float | None] = None

@@ -323,6 +323,15 @@ def run(
     failure: BaseException | None = None
     generator = learner.learn(interaction)
     stop = StopRequests.listen()  # kill -USR1: stop once the trial in progress is stored
+    checkpointed_at = time.perf_counter()
+
+    def store_checkpoint(trial: int) -> None:
+        nonlocal checkpointed_at
+        _save_checkpoint(tracker, workdir, Checkpoint(
+            identity, trial, history, interaction.state_dict(), learner.state_dict(), global_rng_state()),
+            learner.keep_checkpoints)
+        checkpointed_at = time.perf_counter()
+
     try:
         try:
             for trial, policy in enumerate(generator, start=first_trial):
@@ -346,12 +355,14 @@ def run(
                 # a stop request waits for the trial to be stored whole; the checkpoint (files) goes before
                 # the metrics (the store's database), so a store that refuses them loses no trial: the
                 # resume logs what the checkpoint holds and the store lacks (_log_missing_trials)
+                can_checkpoint = learner.supports_resume and not last and interaction.can_checkpoint
+                every = learner.checkpoint_every_seconds
+                checkpointed = False
                 with held_interrupts():
                     _log_trial_artifacts(tracker, learner, policy, interaction, workdir, trial)
-                    if learner.supports_resume and not last and interaction.can_checkpoint:
-                        _save_checkpoint(tracker, workdir, Checkpoint(
-                            identity, trial, history, interaction.state_dict(), learner.state_dict(), global_rng_state()),
-                            learner.keep_checkpoints)
+                    if can_checkpoint and (every is None or stop.is_set() or time.perf_counter() - checkpointed_at >= every):
+                        store_checkpoint(trial)
+                        checkpointed = True
                     tracker.log_metrics(_trial_metrics(record), step=trial)
                 progress.update({**record, "max_trials": prep.max_trials}, completed=trial if prep.max_trials else interaction.seconds)
                 if result.solved:
@@ -362,6 +373,9 @@ def run(
                     stop_reason = "max trials"
                     break
                 if stop.is_set():
+                    if can_checkpoint and not checkpointed:  # asked after the checkpoint was passed over: nothing has moved since
+                        with held_interrupts():
+                            store_checkpoint(trial)
                     raise StopRequested(f"stopped after trial {trial} as asked ({STOP_AFTER_TRIAL.name})")
         except BudgetExhaustedError:
             stop_reason = "budget"

@@ -260,11 +260,14 @@ NOT_WALL = lambda history: [{k: v for k, v in r.items() if "second" not in k or 
     ("sac", {**SAC_SMALL, "buffer_size": 1000}),
     ("sac", {**SAC_SMALL, "buffer_size": 1000, "learning_starts": 150}),  # resumed in the random warm-up (steps 120-150)
     ("ppo", PPO_SMALL)])
-def test_resumed_run_equals_uninterrupted_run_and_keeps_two_checkpoints(sb3_plugins, learner, options):
+def test_resumed_run_equals_uninterrupted_run_and_keeps_two_checkpoints(sb3_plugins, monkeypatch, learner, options):
     """Interrupted after trial 3 (SAC: past its random warm-up, replay buffer and entropy coefficient in
     use; PPO: gSDE noise, Adam moments) and resumed from trial 3's checkpoint: every later trial's
     record (evaluation, SB3's losses and counters) equals the uninterrupted run's exactly."""
+    from plugins.sb3_learners import SB3Learner
     from tests.harness.trackers import InterruptAt
+
+    monkeypatch.setattr(SB3Learner, "checkpoint_every_seconds", None)  # a checkpoint after every trial
 
     config = RunConfig(learner, "cartpole", seed=6, learner_options=options, max_trials=5, eval_episodes=2)
     reference = runner.run(config)
@@ -292,13 +295,45 @@ def test_sac_checkpoint_holds_the_filled_replay_buffer(cartpole):
     assert set(state["parameters"]) == {"policy", "actor.optimizer", "critic.optimizer", "ent_coef_optimizer"}
 
 
-def test_a_handover_in_the_middle_of_an_episode_stores_no_checkpoint(sb3_plugins):
+def test_a_handover_in_the_middle_of_an_episode_stores_no_checkpoint(sb3_plugins, monkeypatch):
     """PPO's rollout of 60 steps on 40-step episodes hands over mid-episode at 60 and 180 steps: the
     system's state there is not saved, so only trial 2's (120 steps, an episode boundary) is stored."""
     from harness.tracking import MemoryTracker
+    from plugins.sb3_learners import SB3Learner
 
+    monkeypatch.setattr(SB3Learner, "checkpoint_every_seconds", None)
     tracker = MemoryTracker()
     result = runner.run(RunConfig("ppo", "cartpole", seed=1, learner_options={**PPO_SMALL, "n_steps": 60, "batch_size": 30},
                                   max_trials=4, eval_episodes=1), tracker=tracker)
     assert result.trials == 4 and result.interaction_seconds == pytest.approx(24.0)
     assert tracker.list_artifacts("checkpoints") == ["checkpoints/ckpt_trial002.ckpt"]
+
+
+def test_checkpoints_wait_for_their_interval_but_a_stop_always_stores_one(sb3_plugins):
+    """SB3 hand-overs come every few seconds and a checkpoint holds every recorded episode: one per
+    ``checkpoint_every_seconds`` (300 s; none in this short run). ``kill -USR1`` arriving after trial 2's
+    checkpoint was passed over (while its metrics are stored) still stops with trial 2 checkpointed, and
+    the resumed run equals the uninterrupted one."""
+    import os
+    import signal
+
+    from harness.interrupts import StopRequested
+    from harness.tracking import MemoryTracker
+
+    class StopAt(MemoryTracker):
+        def log_metrics(self, metrics, step):
+            super().log_metrics(metrics, step)
+            if step == 2 and not getattr(self, "sent", False):
+                self.sent = True
+                os.kill(os.getpid(), signal.SIGUSR1)
+
+    config = RunConfig("ppo", "cartpole", seed=3, learner_options=PPO_SMALL, max_trials=4, eval_episodes=1)
+    quiet = MemoryTracker()
+    reference = runner.run(config, tracker=quiet)
+    assert quiet.list_artifacts("checkpoints") == []
+    tracker = StopAt()
+    with pytest.raises(StopRequested, match="after trial 2"):
+        runner.run(config, tracker=tracker)
+    assert tracker.list_artifacts("checkpoints") == ["checkpoints/ckpt_trial002.ckpt"]
+    resumed = runner.run(config, tracker=tracker, resume_run_id=tracker.run_id)
+    assert NOT_WALL(resumed.history) == NOT_WALL(reference.history)
