@@ -14,7 +14,28 @@ A learner logs per-trial numbers through ``self.metrics`` and files through ``se
 
 from __future__ import annotations
 
+import io
 from dataclasses import dataclass
+from pathlib import Path
+from typing import Any
+
+
+def save_figure(fig: Any, path: Path | str) -> Path:
+    """Write a matplotlib figure as an 8-bit palette PNG and return its path.
+
+    A line plot with a legend has few colours: quantised to a 256-colour palette it looks the same as
+    matplotlib's RGBA PNG at about 40 % of the bytes (a per-trial prediction plot: 13 kB against 35 kB),
+    which is what lets a committed store (:mod:`harness.store.committed`, 30 MB in all) keep every
+    trial's plot of its runs. Pillow comes with matplotlib.
+    """
+    from PIL import Image
+
+    buffer = io.BytesIO()
+    fig.savefig(buffer, format="png")
+    buffer.seek(0)
+    with Image.open(buffer) as image:
+        image.convert("RGB").quantize(colors=256, method=Image.Quantize.MEDIANCUT).save(path, format="png", optimize=True)
+    return Path(path)
 
 
 @dataclass(frozen=True)

@@ -19,6 +19,7 @@ import numpy as np
 from harness.datafile import LegacyFormatError, is_legacy, legacy_message
 from harness.discovery import load_learner, load_task
 from harness.evaluation import Evaluator
+from harness.learner_logs import save_figure
 
 
 @dataclass
@@ -56,7 +57,7 @@ def plot_distance_histogram(distances: np.ndarray, threshold: float | None, titl
         ax.legend(fontsize=8)
     ax.set(xlabel="final distance from the goal [m]", ylabel="test episodes", title=title)
     fig.tight_layout()
-    fig.savefig(path)
+    save_figure(fig, path)
     plt.close(fig)
     return path
 

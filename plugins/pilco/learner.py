@@ -36,7 +36,7 @@ import torch
 from harness.errors import NumericalError, OptionError
 from harness.interaction import Interaction
 from harness.learner import Learner, Policy
-from harness.learner_logs import Logs, Timing, TrialFigure
+from harness.learner_logs import Logs, Timing, TrialFigure, save_figure
 from harness.options import Option
 from harness.task import Episode, TaskSpec
 from harness.threads import run_threads, torch_threads
@@ -400,7 +400,7 @@ class Pilco(Learner):
         ax.set(xlabel="time [s]", ylabel="cost", ylim=(-0.05, 1.05), title=f"{self.name} on {self.spec.name}: trial {trial}")
         ax.legend(loc="lower left", fontsize=8)
         fig.tight_layout()
-        fig.savefig(path)
+        save_figure(fig, path)
         plt.close(fig)
         return path
 
