@@ -36,11 +36,13 @@ time, and when stopped with ``kill -USR1``; they continue exactly as the uninter
 
 from __future__ import annotations
 
+import copy
 import json
 import shutil
 import tempfile
 import time
 from abc import abstractmethod
+from collections import deque
 from collections.abc import Iterator, Sequence
 from pathlib import Path
 from typing import Any, ClassVar
@@ -361,10 +363,12 @@ class SB3Learner(Learner):
         model = getattr(self, "_model", None)
         if model is None:
             return {}
+        from stable_baselines3.common.save_util import recursive_getattr
+
         _, variables = model._get_torch_save_params()
         state: dict[str, Any] = {
-            "parameters": _detached(model.get_parameters()),
-            "variables": {name: _attribute(model, name).detach().clone() for name in variables},
+            "parameters": copy.deepcopy(model.get_parameters()),  # state_dicts: tensors without gradients
+            "variables": {name: recursive_getattr(model, name).detach().clone() for name in variables},
             "num_timesteps": int(model.num_timesteps),
             "n_updates": int(model._n_updates),
             "episode_num": int(model._episode_num),
@@ -383,16 +387,15 @@ class SB3Learner(Learner):
     def _restore(self, model: Any, state: dict[str, Any]) -> None:
         """Put :meth:`state_dict` into a freshly built ``model`` (same hyperparameters)."""
         import torch
+        from stable_baselines3.common.save_util import recursive_getattr
 
         model.set_parameters(state["parameters"], exact_match=True, device="cpu")
         for name, value in state["variables"].items():
             with torch.no_grad():
-                _attribute(model, name).copy_(value)
+                recursive_getattr(model, name).copy_(value)
         model.num_timesteps = int(state["num_timesteps"])
         model._n_updates = int(state["n_updates"])
         model._episode_num = int(state["episode_num"])
-        from collections import deque
-
         model.ep_info_buffer = deque(state["ep_info"], maxlen=model._stats_window_size)
         model.ep_success_buffer = deque(state["ep_success"], maxlen=model._stats_window_size)
         model.action_space.np_random.bit_generator.state = state["action_space_rng"]
@@ -465,26 +468,6 @@ class SB3Learner(Learner):
 #: others are classes (activation, features extractor, optimiser: SB3's defaults here), spaces and a schedule
 POLICY_KWARGS = ("net_arch", "use_sde", "log_std_init", "use_expln", "clip_mean", "full_std", "squash_output", "ortho_init",
                  "n_critics", "share_features_extractor", "normalize_images")
-
-
-def _attribute(obj: Any, dotted: str) -> Any:
-    """``obj.a.b`` for ``"a.b"``."""
-    for name in dotted.split("."):
-        obj = getattr(obj, name)
-    return obj
-
-
-def _detached(tree: Any) -> Any:
-    """``tree`` (dicts, lists, tensors) with every tensor detached and copied: plain data."""
-    import torch
-
-    if isinstance(tree, torch.Tensor):
-        return tree.detach().clone()
-    if isinstance(tree, dict):
-        return {k: _detached(v) for k, v in tree.items()}
-    if isinstance(tree, (list, tuple)):
-        return type(tree)(_detached(v) for v in tree)
-    return tree
 
 
 def _no_learning(progress_remaining: float) -> float:
