@@ -72,7 +72,7 @@ def extract(checkpoint: str, out: str) -> None:
     from harness.checkpoint import load_checkpoint
     from harness.interaction import Episode
     from harness.runner import config_from_identity, new_learner, prepare
-    from plugins.pilco.learner import transitions
+    from plugins.pilco.policy import transitions
 
     ck = load_checkpoint(Path(checkpoint))
     ident = ck.identity

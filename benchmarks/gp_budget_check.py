@@ -48,7 +48,7 @@ from benchmarks.report_file import command_line, write_report  # noqa: E402
 from harness.errors import exit_on_error  # noqa: E402
 from harness.evaluation import Evaluator  # noqa: E402
 from plugins.pilco.gp import GPModel  # noqa: E402
-from plugins.pilco.learner import transitions  # noqa: E402
+from plugins.pilco.policy import transitions  # noqa: E402
 from plugins.pilco.objective import PolicyObjective  # noqa: E402
 from plugins.pilco.propagate import StateLayout  # noqa: E402
 from plugins.pilco.saved_run import SavedPilcoRun  # noqa: E402

@@ -32,7 +32,7 @@ sys.path.insert(0, str(ROOT))
 from benchmarks.gp_budget_check import one_step_scores  # noqa: E402
 from benchmarks.report_file import command_line, write_report  # noqa: E402
 from harness.errors import exit_on_error  # noqa: E402
-from plugins.pilco.learner import transitions  # noqa: E402
+from plugins.pilco.policy import transitions  # noqa: E402
 from plugins.pilco.saved_run import SavedPilcoRun  # noqa: E402
 
 #: learner options that tell apart runs of the GP experiments (the label of a run's row)

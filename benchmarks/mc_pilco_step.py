@@ -56,7 +56,7 @@ def particle_objectives(task_name: str, options: dict[str, str], n: int, bases: 
     from plugins.mc_pilco.particles import ParticleObjective
     from plugins.pilco.cost import CostMoments
     from plugins.pilco.gp import full_posterior
-    from plugins.pilco.learner import initial_controller
+    from plugins.pilco.policy import initial_controller
     from plugins.pilco.sparse import reduced_posterior
 
     task = load_task(task_name)(**options)

@@ -35,7 +35,7 @@ sys.path.insert(0, str(ROOT))
 from benchmarks.report_file import command_line, write_report  # noqa: E402
 from harness.errors import exit_on_error  # noqa: E402
 from harness.evaluation import Evaluator  # noqa: E402
-from plugins.pilco.learner import linear_policy_from_gain  # noqa: E402
+from plugins.pilco.policy import linear_policy_from_gain  # noqa: E402
 from plugins.pilco.objective import PolicyObjective  # noqa: E402
 from plugins.pilco.sampling import sampled_costs  # noqa: E402
 from plugins.pilco.saved_run import SavedPilcoRun  # noqa: E402

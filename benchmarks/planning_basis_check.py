@@ -54,7 +54,7 @@ from harness.interaction import Episode  # noqa: E402
 from harness.migration import read_legacy_checkpoint  # noqa: E402
 from harness.runner import config_from_identity, new_learner, prepare  # noqa: E402
 from plugins.pilco.gp import GPModel, optimise_pseudo_inputs  # noqa: E402
-from plugins.pilco.learner import PilcoPolicy, transitions  # noqa: E402
+from plugins.pilco.policy import PilcoPolicy, transitions  # noqa: E402
 from plugins.pilco.objective import PolicyObjective  # noqa: E402
 from plugins.pilco.policy_search import optimise_policy  # noqa: E402
 from plugins.pilco.posterior import GPPosterior  # noqa: E402

@@ -35,7 +35,8 @@ from harness.discovery import load_task  # noqa: E402
 from harness.errors import exit_on_error  # noqa: E402
 from harness.interaction import Interaction  # noqa: E402
 from plugins.pilco.gp import GPModel  # noqa: E402
-from plugins.pilco.learner import Pilco, transitions  # noqa: E402
+from plugins.pilco.learner import Pilco  # noqa: E402
+from plugins.pilco.policy import transitions  # noqa: E402
 from plugins.pilco.objective import PolicyObjective  # noqa: E402
 from plugins.pilco.policy_search import optimise_policy  # noqa: E402
 from plugins.random_learner import UniformRandomPolicy  # noqa: E402

@@ -48,7 +48,7 @@ def random_rollout_data(task, layout, n: int, seed: int = 0):
     under ``layout``), and log-hyperparameters from the data's scales: ``log_ell (E, d)`` (input std),
     ``log_alpha (E,)`` (target std), ``log_sigma = log_alpha - log 100``."""
     from harness.interaction import Interaction
-    from plugins.pilco.learner import transitions
+    from plugins.pilco.policy import transitions
     from plugins.random_learner import UniformRandomPolicy
 
     spec = task.spec

@@ -34,7 +34,7 @@ sys.path.insert(0, str(ROOT))
 from benchmarks.cmaes import minimise  # noqa: E402
 from benchmarks.report_file import command_line, write_report  # noqa: E402
 from harness.evaluation import Evaluator  # noqa: E402
-from plugins.pilco.learner import PilcoPolicy, linear_policy, linear_policy_from_gain  # noqa: E402
+from plugins.pilco.policy import PilcoPolicy, linear_policy, linear_policy_from_gain  # noqa: E402
 from tasks.unicycle import Unicycle  # noqa: E402
 from tasks.unicycle_lqr import riding_lqr  # noqa: E402
 

@@ -7,7 +7,7 @@ Usage::
 For each start distribution (task option ``init``: ``paper`` = 0.25^2 I on the 12 ODE states,
 ``code`` = the reference code's) and each riding speed, the discrete LQR about riding straight
 (:func:`tasks.unicycle_lqr.riding_lqr`) is mapped to PILCO's linear controller with trapezoid
-squashing (:func:`plugins.pilco.learner.linear_policy_from_gain`) and run by the harness's
+squashing (:func:`plugins.pilco.policy.linear_policy_from_gain`) and run by the harness's
 evaluator (the task's success rule; cost summed over the 67-step horizon, a fall held to the end)
 on ``--episodes`` fresh episodes with measurement noise. A zero-torque row shows the fall baseline.
 Writes ``results/benchmarks/unicycle_linear_ceiling.md``.
@@ -27,7 +27,7 @@ sys.path.insert(0, str(ROOT))
 
 from benchmarks.report_file import command_line, write_report  # noqa: E402
 from harness.evaluation import Evaluator  # noqa: E402
-from plugins.pilco.learner import linear_policy_from_gain  # noqa: E402
+from plugins.pilco.policy import linear_policy_from_gain  # noqa: E402
 from tasks.unicycle import Unicycle  # noqa: E402
 from tasks.unicycle_lqr import riding_lqr  # noqa: E402
 

@@ -15,7 +15,7 @@ model/objective itself prefer the learned policy (the LQR's J is higher)?
 
 For each trial K of the PILCO run (``--trials``) it loads the GP the learner trained at trial K
 (``trialK/model_trialK.pt``) and the policy it handed over at trial K (``policies/policy_trialK.policy``),
-and the riding LQRs (``--speeds``, via :func:`plugins.pilco.learner.linear_policy_from_gain`, as
+and the riding LQRs (``--speeds``, via :func:`plugins.pilco.policy.linear_policy_from_gain`, as
 ``benchmarks/unicycle_linear_ceiling.py``). Under that GP it evaluates the learner's objective
 (:class:`plugins.pilco.objective.PolicyObjective`: the task's ``N(mu0, Sigma0)``, the run's cost
 width, the saved state layout, ``mean_only`` off as in ``pilco``) over each of ``--horizons``
@@ -66,7 +66,7 @@ from benchmarks.pilco_prediction_check import held_costs  # noqa: E402
 from harness.evaluation import Evaluator  # noqa: E402
 from harness.testrun import task_options  # noqa: E402
 from plugins.pilco.gp import GPModel  # noqa: E402
-from plugins.pilco.learner import PilcoPolicy, linear_policy_from_gain, transitions  # noqa: E402
+from plugins.pilco.policy import PilcoPolicy, linear_policy_from_gain, transitions  # noqa: E402
 from plugins.pilco.objective import PolicyObjective  # noqa: E402
 from plugins.pilco.policy_search import optimise_policy  # noqa: E402
 from plugins.pilco.sampling import sampled_costs  # noqa: E402

@@ -27,7 +27,6 @@ from collections.abc import Iterator
 from typing import Any
 
 import numpy as np
-import torch
 
 from harness.errors import OptionError
 from harness.interaction import Interaction
@@ -36,21 +35,7 @@ from harness.learner_logs import Logs, Timing
 from harness.options import Option
 from harness.task import TaskSpec
 from harness.threads import run_threads
-from plugins.mc_pilco.optimise import optimise_particles
-from plugins.mc_pilco.particles import ParticleObjective
-from plugins.pilco.cost import CostMoments
-from plugins.pilco.gp import GPHyperparameters, GPModel
-from plugins.pilco.learner import (
-    GENERIC,
-    PRESETS,
-    PilcoPolicy,
-    initial_controller,
-    layout_for,
-    pilco_policy_from_state,
-    pilco_policy_state,
-    preset_with,
-    transitions,
-)
+from plugins.pilco.presets import GENERIC, PRESETS, preset_with
 
 
 class McPilco(Learner):
@@ -93,6 +78,8 @@ class McPilco(Learner):
     )
 
     def __init__(self, spec: TaskSpec, options: dict[str, Any] | None = None, seed: int = 0) -> None:
+        from plugins.pilco.policy import layout_for
+
         super().__init__(spec, options, seed)
         o = self.options
         preset = PRESETS.get(spec.name, GENERIC)
@@ -111,6 +98,13 @@ class McPilco(Learner):
         return PRESETS.get(spec.name, GENERIC).max_trials, None
 
     def learn(self, interaction: Interaction) -> Iterator[Policy]:
+        import torch
+
+        from plugins.mc_pilco.optimise import optimise_particles
+        from plugins.mc_pilco.particles import ParticleObjective
+        from plugins.pilco.cost import CostMoments
+        from plugins.pilco.gp import GPHyperparameters, GPModel
+        from plugins.pilco.policy import PilcoPolicy, initial_controller, transitions
         from plugins.random_learner import UniformRandomPolicy
 
         spec, o = self.spec, self.options
@@ -167,9 +161,13 @@ class McPilco(Learner):
 
     @classmethod
     def policy_state(cls, policy: Policy) -> dict[str, Any]:
-        """PILCO's controllers, saved as PILCO saves them (:func:`~plugins.pilco.learner.pilco_policy_state`)."""
+        """PILCO's controllers, saved as PILCO saves them (:func:`~plugins.pilco.policy.pilco_policy_state`)."""
+        from plugins.pilco.policy import pilco_policy_state
+
         return pilco_policy_state(policy)
 
     @classmethod
     def policy_from_state(cls, state: dict[str, Any], spec: TaskSpec) -> Policy:
+        from plugins.pilco.policy import pilco_policy_from_state
+
         return pilco_policy_from_state(state, spec)

@@ -24,14 +24,12 @@ import json
 import math
 import shutil
 import tempfile
-import time
 from collections.abc import Iterator
-from dataclasses import asdict, dataclass, replace
+from dataclasses import asdict, replace
 from pathlib import Path
-from typing import Any, ClassVar
+from typing import TYPE_CHECKING, Any, ClassVar
 
 import numpy as np
-import torch
 
 from harness.errors import NumericalError, OptionError
 from harness.interaction import Interaction
@@ -40,200 +38,27 @@ from harness.learner_logs import Logs, Timing, TrialFigure, save_figure
 from harness.options import Option
 from harness.task import Episode, TaskSpec
 from harness.threads import run_threads, torch_threads
-from plugins.pilco.controllers import LinearController, RBFController, SquashedController, controller_from_state, controller_state
-from plugins.pilco.gp import GPHyperparameters, GPModel
-from plugins.pilco.moments import resolve_kernel
-from plugins.pilco.objective import PolicyObjective
-from plugins.pilco.policy_search import optimise_policy
-from plugins.pilco.propagate import StateLayout, act
-from plugins.pilco.sampling import sampled_costs
+from plugins.pilco.presets import GENERIC, PRESETS, preset_with
 
+if TYPE_CHECKING:
+    import torch
 
-@dataclass(frozen=True)
-class Preset:
-    """Per-task PILCO settings (reference ``settings_*.m`` unless noted).
-
-    ``model_exclude``/``policy_exclude``: augmented-state indices hidden from the GP / policy
-    (the raw angles are always replaced by their sin/cos). ``planning_horizon`` (steps; ``None``:
-    the task's horizon) and ``cost_width`` (metres; ``None``: the task's) set what J is computed
-    over; the task's own cost and horizon still score every evaluation. ``fresh_start_tol``: the
-    default of the learner option of that name (``None``: off).
-    """
-
-    controller: str = "rbf"
-    num_centres: int = 50
-    initial_rollouts: int = 1
-    random_scale: float = 1.0
-    sparse_threshold: int = 300
-    max_trials: int = 15
-    policy_max_iterations: int = 150
-    policy_max_evaluations: int = 300
-    model_exclude: tuple[int, ...] = ()
-    policy_exclude: tuple[int, ...] = ()
-    planning_horizon: int | None = None
-    cost_width: float | None = None
-    fresh_start_tol: float | None = None
-
-
-PRESETS: dict[str, Preset] = {
-    # settings_cp.m; 50 centres as the paper's R^305 policy (V0.9 code: 10)
-    "cartpole": Preset(controller="rbf", num_centres=50, initial_rollouts=1, sparse_threshold=300, max_trials=15),
-    # settings_cdp.m: 200 centres, FITC with 400 pseudo-inputs, 40 policy iterations
-    "double-pendulum": Preset(controller="rbf", num_centres=200, initial_rollouts=1, sparse_threshold=400, max_trials=40),
-    # settings_unicycle.m: linear policy, 10 random rollouts at u_max/5; the GP does not see the yaw
-    # (dyni drops phi, observation index 8); the policy sees all 10 states
-    # policy search: at most 150 J evaluations in all (settings_unicycle.m: opt.length = -150)
-    "unicycle": Preset(controller="linear", initial_rollouts=10, random_scale=0.2, sparse_threshold=300, max_trials=40,
-                       policy_max_evaluations=150, model_exclude=(8,)),
-    # dm_control: the observation already carries cos/sin of the pole angle. Not in the paper; chosen
-    # by measurement (results/benchmarks/pilco_dmc_settings.md): J over the whole 10 s episode never
-    # solved (seeds 0, 1: 150 s), J over 4 s (the V0.9 cart-pole horizon) solved seed 0 at trial 4;
-    # the task's 0.25 m width on this 1 m pole leaves J exactly flat at the bottom (seed 1: 2 J
-    # evaluations per trial, no change in 15 trials), so planning uses the paper's cart-pole
-    # width-to-pole ratio, 0.25 m / 0.6 m x 1 m = 0.42 m
-    # fresh_start_tol=0.05 chosen on tuning seeds 100-104 (results/findings_dmc-cartpole.md): with it 5 of 5
-    # solved (seed 103 at trial 6, after the fresh search was kept at trial 5); without it seed 103 was
-    # unsolved after 15 trials (J 34.8 -> 30.5 by trial 8), the other seeds identical
-    "dmc-cartpole": Preset(controller="rbf", num_centres=50, initial_rollouts=1, sparse_threshold=300, max_trials=15,
-                           planning_horizon=40, cost_width=0.42, fresh_start_tol=0.05),
-}
-GENERIC = Preset()
+    from plugins.pilco.controllers import SquashedController
+    from plugins.pilco.gp import GPModel
+    from plugins.pilco.objective import PolicyObjective
+    from plugins.pilco.policy import PilcoPolicy
 
 
 def resolve_device(device: str) -> torch.device:
     """``cpu``, ``cuda`` or ``auto`` (``cuda`` where torch sees a GPU) as a torch device; ``cuda``
     without a GPU raises :class:`OptionError` naming the fix."""
+    import torch
+
     if device == "auto":
         device = "cuda" if torch.cuda.is_available() else "cpu"
     if device == "cuda" and not torch.cuda.is_available():
         raise OptionError("device=cuda: torch sees no CUDA GPU here (install a CUDA build of torch, or --set device=cpu)")
     return torch.device(device)
-
-
-def preset_with(task: str, options: dict[str, Any]) -> Preset:
-    """The task's preset (:data:`PRESETS`, else :data:`GENERIC`) with the options that override its
-    entries and are set (not ``None``): ``controller``, ``num_centres``, ``initial_rollouts``,
-    ``random_scale``, ``sparse_threshold``, ``policy_max_iterations``, ``policy_max_evaluations``
-    (a learner without some of these options keeps the preset's)."""
-    preset = PRESETS.get(task, GENERIC)
-    fields = ("controller", "num_centres", "initial_rollouts", "random_scale", "sparse_threshold",
-              "policy_max_iterations", "policy_max_evaluations")
-    return replace(preset, **{k: options[k] for k in fields if options.get(k) is not None})
-
-
-def layout_for(spec: TaskSpec, preset: Preset) -> StateLayout:
-    """The task's state layout: sin/cos for every angle, minus the preset's exclusions."""
-    base = StateLayout.with_trig(spec.state_dim, spec.angle_indices)
-    model = tuple(i for i in base.model_inputs if i not in preset.model_exclude)
-    policy = tuple(i for i in base.policy_inputs if i not in preset.policy_exclude)
-    return StateLayout(spec.state_dim, spec.angle_indices, model, policy)
-
-
-def transitions(episodes: tuple[Episode, ...] | list[Episode], layout: StateLayout) -> tuple[np.ndarray, np.ndarray]:
-    """GP training data from recorded (noisy) observations.
-
-    Inputs ``[a(x_t)[model_inputs], u_t]`` ``(n, q + F)``; targets ``x_{t+1} - x_t`` ``(n, D)``.
-    The last transition of a terminated episode (it left the allowed region, e.g. the unicycle
-    fell) is dropped, as the reference ``rollout`` does.
-    """
-    xs, us, ys = [], [], []
-    for ep in episodes:
-        steps = ep.steps - (1 if ep.terminated else 0)
-        if steps <= 0:
-            continue
-        xs.append(ep.observations[:steps])
-        us.append(ep.actions[:steps])
-        ys.append(ep.observations[1 : steps + 1] - ep.observations[:steps])
-    x = torch.as_tensor(np.concatenate(xs), dtype=torch.float64)
-    with torch.no_grad():
-        inputs = layout.augment(x)[:, layout.model_index]
-    return np.concatenate([inputs.numpy(), np.concatenate(us)], axis=1), np.concatenate(ys)
-
-
-class PilcoPolicy:
-    """The learned controller applied to an observation: augment, controller, squash -> ``(F,)``.
-
-    Saved as plain data (:meth:`Pilco.policy_state`): the controller's type, parameters and squashing
-    (:func:`~plugins.pilco.controllers.controller_state`) and the state layout's indices.
-    """
-
-    def __init__(self, controller: torch.nn.Module, layout: StateLayout) -> None:
-        self.controller = controller
-        self.layout = layout
-
-    def __call__(self, observation: np.ndarray) -> np.ndarray:
-        return act(observation, self.controller, self.layout)
-
-
-def pilco_policy_state(policy: Policy) -> dict[str, Any]:
-    """A :class:`PilcoPolicy` as data: the controller (:func:`~plugins.pilco.controllers.controller_state`)
-    and the layout's fields (shared by every learner that hands over PILCO's controllers)."""
-    if not isinstance(policy, PilcoPolicy):
-        raise TypeError(f"a PILCO policy is a PilcoPolicy, not a {type(policy).__name__}")
-    return {"controller": controller_state(policy.controller), "layout": asdict(policy.layout)}
-
-
-def pilco_policy_from_state(state: dict[str, Any], spec: TaskSpec) -> PilcoPolicy:
-    """The :class:`PilcoPolicy` of :func:`pilco_policy_state`, checked against the task's dimensions."""
-    layout = StateLayout(**state["layout"])
-    if layout.state_dim != spec.state_dim:
-        raise ValueError(f"a policy for {layout.state_dim} states, the task has {spec.state_dim}")
-    controller = controller_from_state(state["controller"])
-    if controller.num_controls != spec.action_dim:
-        raise ValueError(f"a policy with {controller.num_controls} controls, the task has {spec.action_dim}")
-    return PilcoPolicy(controller, layout)
-
-
-def linear_policy(spec: TaskSpec, W: np.ndarray, b: np.ndarray, squash: str = "trapezoid") -> PilcoPolicy:
-    """PILCO's squashed linear controller ``u = u_max squash(W a + b)`` on the task's policy inputs
-    ``a`` (its preset's layout); ``W (F, p)``, ``b (F,)``."""
-    u_max = np.asarray(spec.action_high, dtype=np.float64)
-    W, b = (torch.from_numpy(np.array(v, dtype=np.float64)) for v in (W, b))
-    return PilcoPolicy(SquashedController(LinearController(W, b), u_max, squash), layout_for(spec, PRESETS.get(spec.name, GENERIC)))
-
-
-def linear_policy_from_gain(spec: TaskSpec, K: np.ndarray, x_star: np.ndarray, squash: str = "trapezoid") -> PilcoPolicy:
-    """PILCO's squashed linear controller equal to ``u = -K (x - x*)`` to first order at ``x*``.
-
-    ``K (F, D)``, ``x* (D,)`` in the task's state coordinates; pre-squash ``W = -K / (s u_max)``,
-    ``b = -W x*`` with ``s`` the squashing's slope at 0 (:data:`~plugins.pilco.trig.SQUASH_SLOPE`).
-    For tasks whose policy sees the raw state (no sin/cos entries), e.g. a reference LQR on the unicycle.
-    """
-    from plugins.pilco.trig import SQUASH_SLOPE
-
-    layout = layout_for(spec, PRESETS.get(spec.name, GENERIC))
-    if layout.policy_inputs != tuple(range(spec.state_dim)):
-        raise ValueError(f"{spec.name}: the policy does not see the raw state ({layout.policy_inputs}); a gain on it cannot be mapped")
-    u_max = np.asarray(spec.action_high, dtype=np.float64)
-    W = -np.asarray(K, dtype=np.float64) / (SQUASH_SLOPE[squash] * u_max[:, None])
-    return linear_policy(spec, W, -W @ np.asarray(x_star, dtype=np.float64), squash)
-
-
-def _initial_policy_input_moments(spec: TaskSpec, layout: StateLayout) -> tuple[torch.Tensor, torch.Tensor]:
-    """Moments of the policy inputs under N(mu0, Sigma0) (for placing the RBF centres)."""
-    from plugins.pilco.trig import augment_trig
-
-    m = torch.as_tensor(spec.init_mean, dtype=torch.float64)
-    S = torch.as_tensor(spec.init_cov, dtype=torch.float64)
-    ma, sa = augment_trig(m, S, layout.angle_map)
-    idx = layout.policy_index
-    return ma[idx], sa[idx[:, None], idx[None, :]]
-
-
-def initial_controller(spec: TaskSpec, preset: Preset, layout: StateLayout, squash: str | None,
-                       generator: torch.Generator) -> SquashedController:
-    """The reference's initial policy: a linear controller with small random weights, or an RBF
-    network with ``preset.num_centres`` centres drawn from the initial policy-input distribution;
-    squashed to the task's symmetric control bounds (``squash``: trapezoid, sin or None)."""
-    if not np.allclose(spec.action_low, -spec.action_high):
-        raise ValueError(f"PILCO's squashing needs symmetric control bounds; {spec.name} has {spec.action_low}..{spec.action_high}")
-    p, f = len(layout.policy_inputs), spec.action_dim
-    if preset.controller == "linear":
-        base = LinearController.initial(p, f, scale=0.01, generator=generator)
-    else:
-        mean, cov = _initial_policy_input_moments(spec, layout)
-        base = RBFController.initial(mean, cov, preset.num_centres, f, _initial_length_scales(layout), generator=generator)
-    return SquashedController(base, spec.action_high, squash)
 
 
 def stalled(J: float, previous_J: float | None, predicted: float | None, realised: float | None, tol: float | None) -> bool:
@@ -272,11 +97,8 @@ def next_planning_horizon(horizon: int, task_horizon: int, search, grow_below: f
     return min(2 * horizon, task_horizon)
 
 
-def _initial_length_scales(layout: StateLayout) -> torch.Tensor:
-    """Reference initial policy length-scales: 1 for plain states, 0.7 for sin/cos entries."""
-    return torch.tensor([0.7 if i >= layout.state_dim else 1.0 for i in layout.policy_inputs], dtype=torch.float64)
 
-
+# ---
 class Pilco(Learner):
     """PILCO (Deisenroth & Rasmussen 2011): GP dynamics, moment matching, analytic policy gradients."""
 
@@ -338,6 +160,9 @@ class Pilco(Learner):
     )
 
     def __init__(self, spec: TaskSpec, options: dict[str, Any] | None = None, seed: int = 0) -> None:
+        from plugins.pilco.moments import resolve_kernel
+        from plugins.pilco.policy import layout_for
+
         super().__init__(spec, options, seed)
         o = self.options
         preset = PRESETS.get(spec.name, GENERIC)
@@ -379,6 +204,8 @@ class Pilco(Learner):
 
     # ---- pieces --------------------------------------------------------------------------------
     def _new_controller(self, generator: torch.Generator) -> SquashedController:
+        from plugins.pilco.policy import initial_controller
+
         return initial_controller(self.spec, self.preset, self.layout, self.options["squash"], generator)
 
     def _plot_prediction(self, predicted: tuple[np.ndarray, np.ndarray], sampled: np.ndarray | None, episode: Episode,
@@ -406,6 +233,12 @@ class Pilco(Learner):
 
     # ---- Algorithm 1 ---------------------------------------------------------------------------
     def learn(self, interaction: Interaction) -> Iterator[Policy]:
+        import torch
+
+        from plugins.pilco.gp import GPHyperparameters, GPModel
+        from plugins.pilco.objective import PolicyObjective
+        from plugins.pilco.policy import PilcoPolicy, transitions
+        from plugins.pilco.sampling import sampled_costs
         from plugins.random_learner import UniformRandomPolicy
 
         spec, o = self.spec, self.options
@@ -492,6 +325,8 @@ class Pilco(Learner):
 
     def _search(self, objective: PolicyObjective, kernel: str, threads: int):
         """One policy search from the controller's current parameters within the preset's budgets."""
+        from plugins.pilco.policy_search import optimise_policy
+
         # the numba contraction runs its own threads; everything else in J is small
         with torch_threads(1 if kernel == "numba" else threads):
             return optimise_policy(objective, self.preset.policy_max_iterations, self.preset.policy_max_evaluations)
@@ -501,6 +336,8 @@ class Pilco(Learner):
         """A second policy search from fresh initial parameters (seeded by run seed and trial); the
         lower J of the two is left in the controller. Returns the search to report (the kept one, with
         both searches' time and evaluations) and ``{"J": fresh J, "kept": bool}``."""
+        import torch
+
         kept_theta = objective.get_flat()
         generator = torch.Generator().manual_seed(1_000_003 * (self.seed + 1) + trial)
         controller.load_state_dict(self._new_controller(generator).state_dict())  # copied onto the controller's device
@@ -536,15 +373,21 @@ class Pilco(Learner):
 
     @classmethod
     def policy_state(cls, policy: Policy) -> dict[str, Any]:
-        """:func:`pilco_policy_state`."""
+        """:func:`~plugins.pilco.policy.pilco_policy_state`."""
+        from plugins.pilco.policy import pilco_policy_state
+
         return pilco_policy_state(policy)
 
     @classmethod
     def policy_from_state(cls, state: dict[str, Any], spec: TaskSpec) -> PilcoPolicy:
-        """:func:`pilco_policy_from_state`."""
+        """:func:`~plugins.pilco.policy.pilco_policy_from_state`."""
+        from plugins.pilco.policy import pilco_policy_from_state
+
         return pilco_policy_from_state(state, spec)
 
     def _trial_metrics(self, fit, search, failed: float, predicted, num_params: int) -> dict[str, float]:
+        import torch
+
         metrics = {
             "n_data": float(fit.n_points),
             "gp_sparse": float(fit.sparse),
@@ -569,6 +412,8 @@ class Pilco(Learner):
 
     def _save_model(self, workdir: Path, trial: int, model: GPModel, fit) -> list[Path]:
         """The trained GP (state dict, for inspection) and its hyperparameters (readable JSON)."""
+        import torch
+
         h = fit.hyperparameters
         model_path = workdir / f"model_trial{trial:03d}.pt"
         # plain data only, so that it loads with torch.load(weights_only=True) (SavedPilcoRun.saved_model)

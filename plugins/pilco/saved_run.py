@@ -38,7 +38,7 @@ from harness.store.layout import trial_folder
 from harness.task import Episode
 from harness.testrun import task_options
 from plugins.pilco.gp import GPModel
-from plugins.pilco.learner import Preset
+from plugins.pilco.presets import Preset
 from plugins.pilco.propagate import StateLayout
 
 

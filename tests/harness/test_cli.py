@@ -2,6 +2,7 @@
 
 from __future__ import annotations
 
+import ast
 import os
 import subprocess
 import sys
@@ -19,16 +20,34 @@ def run_cli(*args: str, cwd: Path | None = None, env: dict | None = None) -> sub
     return subprocess.run([*HARNESS, *args], capture_output=True, text=True, cwd=cwd, env=env, timeout=300)
 
 
-def test_help_and_version_do_not_import_mlflow_or_torch():
+HEAVY = ("mlflow", "scipy.optimize", "stable_baselines3", "torch")
+
+
+def heavy_modules_after(args: list[str]) -> tuple[str, list[str]]:
+    """The output of ``harness ARGS`` in a fresh interpreter and which of :data:`HEAVY` it imported."""
     code = (
         "import sys\n"
         "from harness.cli import main\n"
-        "try:\n    main(['--help'])\nexcept SystemExit:\n    pass\n"
-        "print('mlflow' in sys.modules, 'torch' in sys.modules)\n"
+        f"try:\n    main({args!r})\nexcept SystemExit:\n    pass\n"
+        f"print(sorted(m for m in {HEAVY!r} if m in sys.modules))\n"
     )
-    out = subprocess.run([sys.executable, "-c", code], capture_output=True, text=True, timeout=60).stdout
-    assert out.strip().endswith("False False")
+    out = subprocess.run([sys.executable, "-c", code], capture_output=True, text=True, timeout=60).stdout.strip()
+    *shown, loaded = out.splitlines()
+    return "\n".join(shown), ast.literal_eval(loaded)
+
+
+def test_help_and_version_do_not_import_mlflow_or_torch():
+    shown, loaded = heavy_modules_after(["--help"])
+    assert "Commands:" in shown and loaded == []
     assert "harness, version 0.1.0" in CliRunner().invoke(main, ["--version"]).output
+
+
+def test_list_does_not_import_torch_or_mlflow():
+    """``harness list --options`` loads every plugin class but none of torch, SB3 or MLflow (~2.5 s
+    each): learners import their machinery when they run."""
+    shown, loaded = heavy_modules_after(["list", "--options"])
+    assert "pilco" in shown and "mc-pilco" in shown and "unicycle" in shown
+    assert loaded == []
 
 
 def test_list_shows_plugins():

@@ -49,7 +49,7 @@ def _as_older_harness_wrote_it(root: Path, learner: str) -> None:
     """Replace a run's checkpoints, policies and PILCO model files by what the harness wrote before the
     data-only format: pickles of the same objects (checkpoint: behind a HARNESS-CKPT header)."""
     from plugins.pilco.gp import GPHyperparameters
-    from plugins.pilco.learner import Preset
+    from plugins.pilco.presets import Preset
     from plugins.pilco.propagate import StateLayout
 
     for path in sorted((root / "checkpoints").glob("*.ckpt")):

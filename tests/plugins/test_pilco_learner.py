@@ -13,7 +13,8 @@ from harness.errors import NumericalError, OptionError
 from harness.runner import RunConfig, run
 from harness.testing import LearnerConformance
 from harness.tracking import MemoryTracker
-from plugins.pilco.learner import PRESETS, Pilco, PilcoMean, layout_for, transitions
+from plugins.pilco.learner import PRESETS, Pilco, PilcoMean
+from plugins.pilco.policy import layout_for, transitions
 from tasks.cartpole import CartPole
 
 TINY = {"num_centres": "5", "policy_max_evaluations": "15", "gp_max_evals": "40", "plots": "true"}
@@ -60,7 +61,7 @@ def test_policy_search_budget_comes_from_the_task_preset():
 
 def test_gp_training_budgets_reach_the_dynamics_model(monkeypatch):
     """gp_fitc_evals, gp_hyper_subset and gp_refresh_pseudo configure the GPModel the learner trains (FITC from 20 points here)."""
-    import plugins.pilco.learner as learner_module
+    import plugins.pilco.gp as gp_module
     from plugins.pilco.gp import GPModel
 
     fits = []
@@ -71,7 +72,7 @@ def test_gp_training_budgets_reach_the_dynamics_model(monkeypatch):
             fits.append((self.max_evals_fitc, self.hyper_subset, report.n_hyper_points, report.sparse, self.refresh_pseudo))
             return report
 
-    monkeypatch.setattr(learner_module, "GPModel", Recording)
+    monkeypatch.setattr(gp_module, "GPModel", Recording)  # the learner imports it at first use
     options = {**TINY, "sparse_threshold": "20", "num_pseudo": "10", "gp_fitc_evals": "7", "gp_hyper_subset": "12",
                "gp_refresh_pseudo": "true"}
     run(RunConfig("pilco", "cartpole", seed=0, learner_options=options, task_options={"horizon": 15}, max_trials=2, eval_episodes=1),
@@ -214,17 +215,17 @@ def test_fresh_start_keeps_the_lower_J_of_the_two_searches(monkeypatch):
     """With a tolerance that always holds, every trial after the first also searches from fresh
     parameters; the reported J is the lower of the two searches' (recorded independently here), the
     metrics say which was kept, and both searches' time is counted."""
-    import plugins.pilco.learner as learner_module
+    import plugins.pilco.policy_search as search_module
 
     searches = []
 
     def recording(*args, **kwargs):
-        result = learner_module.optimise_policy.__wrapped__(*args, **kwargs)
+        result = recording.__wrapped__(*args, **kwargs)
         searches.append(result)
         return result
 
-    recording.__wrapped__ = learner_module.optimise_policy
-    monkeypatch.setattr(learner_module, "optimise_policy", recording)
+    recording.__wrapped__ = search_module.optimise_policy
+    monkeypatch.setattr(search_module, "optimise_policy", recording)  # the learner imports it at each search
     tracker = MemoryTracker()
     options = dict(TINY, fresh_start_tol="1e9", plots="false")
     result = run(RunConfig("pilco", "cartpole", seed=1, learner_options=options, task_options={"horizon": 10}, max_trials=3,

@@ -459,14 +459,14 @@ def test_roll_is_not_linearly_controllable_at_rest_but_is_when_riding():
 
 def riding_lqr_policy(task: Unicycle, speed: float):
     """:func:`tasks.unicycle_lqr.riding_lqr` as PILCO's linear controller with trapezoid squashing."""
-    from plugins.pilco.learner import linear_policy_from_gain
+    from plugins.pilco.policy import linear_policy_from_gain
 
     K, x_star = riding_lqr(task, speed)
     return linear_policy_from_gain(task.spec, K, x_star)
 
 
 def test_squash_slopes_used_to_map_a_gain():
-    """:func:`~plugins.pilco.learner.linear_policy_from_gain` relies on the squashings' slopes at 0."""
+    """:func:`~plugins.pilco.policy.linear_policy_from_gain` relies on the squashings' slopes at 0."""
     import torch
 
     from plugins.pilco.trig import SQUASH_SLOPE, squash

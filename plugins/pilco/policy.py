@@ -1,0 +1,145 @@
+"""PILCO's policy as the harness sees it, and the data PILCO learns from.
+
+* :func:`layout_for`: a task's state layout (sin/cos of its angles, the preset's exclusions);
+* :func:`initial_controller`: the reference's initial linear or RBF controller, squashed;
+* :class:`PilcoPolicy`: a controller applied to an observation, saved and loaded as plain data
+  (:func:`pilco_policy_state`, :func:`pilco_policy_from_state`); :func:`linear_policy` and
+  :func:`linear_policy_from_gain` build one by hand (e.g. a reference LQR);
+* :func:`transitions`: the GP's training inputs and targets from recorded episodes.
+
+Shared by every learner on PILCO's library (``pilco``, ``pilco-mean``, ``mc-pilco``).
+"""
+
+from __future__ import annotations
+
+from dataclasses import asdict
+from typing import Any
+
+import numpy as np
+import torch
+
+from harness.learner import Policy
+from harness.task import Episode, TaskSpec
+from plugins.pilco.controllers import LinearController, RBFController, SquashedController, controller_from_state, controller_state
+from plugins.pilco.presets import GENERIC, PRESETS, Preset
+from plugins.pilco.propagate import StateLayout, act
+
+
+def layout_for(spec: TaskSpec, preset: Preset) -> StateLayout:
+    """The task's state layout: sin/cos for every angle, minus the preset's exclusions."""
+    base = StateLayout.with_trig(spec.state_dim, spec.angle_indices)
+    model = tuple(i for i in base.model_inputs if i not in preset.model_exclude)
+    policy = tuple(i for i in base.policy_inputs if i not in preset.policy_exclude)
+    return StateLayout(spec.state_dim, spec.angle_indices, model, policy)
+
+
+def transitions(episodes: tuple[Episode, ...] | list[Episode], layout: StateLayout) -> tuple[np.ndarray, np.ndarray]:
+    """GP training data from recorded (noisy) observations.
+
+    Inputs ``[a(x_t)[model_inputs], u_t]`` ``(n, q + F)``; targets ``x_{t+1} - x_t`` ``(n, D)``.
+    The last transition of a terminated episode (it left the allowed region, e.g. the unicycle
+    fell) is dropped, as the reference ``rollout`` does.
+    """
+    xs, us, ys = [], [], []
+    for ep in episodes:
+        steps = ep.steps - (1 if ep.terminated else 0)
+        if steps <= 0:
+            continue
+        xs.append(ep.observations[:steps])
+        us.append(ep.actions[:steps])
+        ys.append(ep.observations[1 : steps + 1] - ep.observations[:steps])
+    x = torch.as_tensor(np.concatenate(xs), dtype=torch.float64)
+    with torch.no_grad():
+        inputs = layout.augment(x)[:, layout.model_index]
+    return np.concatenate([inputs.numpy(), np.concatenate(us)], axis=1), np.concatenate(ys)
+
+
+class PilcoPolicy:
+    """The learned controller applied to an observation: augment, controller, squash -> ``(F,)``.
+
+    Saved as plain data (:meth:`Pilco.policy_state`): the controller's type, parameters and squashing
+    (:func:`~plugins.pilco.controllers.controller_state`) and the state layout's indices.
+    """
+
+    def __init__(self, controller: torch.nn.Module, layout: StateLayout) -> None:
+        self.controller = controller
+        self.layout = layout
+
+    def __call__(self, observation: np.ndarray) -> np.ndarray:
+        return act(observation, self.controller, self.layout)
+
+
+def pilco_policy_state(policy: Policy) -> dict[str, Any]:
+    """A :class:`PilcoPolicy` as data: the controller (:func:`~plugins.pilco.controllers.controller_state`)
+    and the layout's fields (shared by every learner that hands over PILCO's controllers)."""
+    if not isinstance(policy, PilcoPolicy):
+        raise TypeError(f"a PILCO policy is a PilcoPolicy, not a {type(policy).__name__}")
+    return {"controller": controller_state(policy.controller), "layout": asdict(policy.layout)}
+
+
+def pilco_policy_from_state(state: dict[str, Any], spec: TaskSpec) -> PilcoPolicy:
+    """The :class:`PilcoPolicy` of :func:`pilco_policy_state`, checked against the task's dimensions."""
+    layout = StateLayout(**state["layout"])
+    if layout.state_dim != spec.state_dim:
+        raise ValueError(f"a policy for {layout.state_dim} states, the task has {spec.state_dim}")
+    controller = controller_from_state(state["controller"])
+    if controller.num_controls != spec.action_dim:
+        raise ValueError(f"a policy with {controller.num_controls} controls, the task has {spec.action_dim}")
+    return PilcoPolicy(controller, layout)
+
+
+def linear_policy(spec: TaskSpec, W: np.ndarray, b: np.ndarray, squash: str = "trapezoid") -> PilcoPolicy:
+    """PILCO's squashed linear controller ``u = u_max squash(W a + b)`` on the task's policy inputs
+    ``a`` (its preset's layout); ``W (F, p)``, ``b (F,)``."""
+    u_max = np.asarray(spec.action_high, dtype=np.float64)
+    W, b = (torch.from_numpy(np.array(v, dtype=np.float64)) for v in (W, b))
+    return PilcoPolicy(SquashedController(LinearController(W, b), u_max, squash), layout_for(spec, PRESETS.get(spec.name, GENERIC)))
+
+
+def linear_policy_from_gain(spec: TaskSpec, K: np.ndarray, x_star: np.ndarray, squash: str = "trapezoid") -> PilcoPolicy:
+    """PILCO's squashed linear controller equal to ``u = -K (x - x*)`` to first order at ``x*``.
+
+    ``K (F, D)``, ``x* (D,)`` in the task's state coordinates; pre-squash ``W = -K / (s u_max)``,
+    ``b = -W x*`` with ``s`` the squashing's slope at 0 (:data:`~plugins.pilco.trig.SQUASH_SLOPE`).
+    For tasks whose policy sees the raw state (no sin/cos entries), e.g. a reference LQR on the unicycle.
+    """
+    from plugins.pilco.trig import SQUASH_SLOPE
+
+    layout = layout_for(spec, PRESETS.get(spec.name, GENERIC))
+    if layout.policy_inputs != tuple(range(spec.state_dim)):
+        raise ValueError(f"{spec.name}: the policy does not see the raw state ({layout.policy_inputs}); a gain on it cannot be mapped")
+    u_max = np.asarray(spec.action_high, dtype=np.float64)
+    W = -np.asarray(K, dtype=np.float64) / (SQUASH_SLOPE[squash] * u_max[:, None])
+    return linear_policy(spec, W, -W @ np.asarray(x_star, dtype=np.float64), squash)
+
+
+def _initial_policy_input_moments(spec: TaskSpec, layout: StateLayout) -> tuple[torch.Tensor, torch.Tensor]:
+    """Moments of the policy inputs under N(mu0, Sigma0) (for placing the RBF centres)."""
+    from plugins.pilco.trig import augment_trig
+
+    m = torch.as_tensor(spec.init_mean, dtype=torch.float64)
+    S = torch.as_tensor(spec.init_cov, dtype=torch.float64)
+    ma, sa = augment_trig(m, S, layout.angle_map)
+    idx = layout.policy_index
+    return ma[idx], sa[idx[:, None], idx[None, :]]
+
+
+def initial_controller(spec: TaskSpec, preset: Preset, layout: StateLayout, squash: str | None,
+                       generator: torch.Generator) -> SquashedController:
+    """The reference's initial policy: a linear controller with small random weights, or an RBF
+    network with ``preset.num_centres`` centres drawn from the initial policy-input distribution;
+    squashed to the task's symmetric control bounds (``squash``: trapezoid, sin or None)."""
+    if not np.allclose(spec.action_low, -spec.action_high):
+        raise ValueError(f"PILCO's squashing needs symmetric control bounds; {spec.name} has {spec.action_low}..{spec.action_high}")
+    p, f = len(layout.policy_inputs), spec.action_dim
+    if preset.controller == "linear":
+        base = LinearController.initial(p, f, scale=0.01, generator=generator)
+    else:
+        mean, cov = _initial_policy_input_moments(spec, layout)
+        base = RBFController.initial(mean, cov, preset.num_centres, f, _initial_length_scales(layout), generator=generator)
+    return SquashedController(base, spec.action_high, squash)
+
+
+def _initial_length_scales(layout: StateLayout) -> torch.Tensor:
+    """Reference initial policy length-scales: 1 for plain states, 0.7 for sin/cos entries."""
+    return torch.tensor([0.7 if i >= layout.state_dim else 1.0 for i in layout.policy_inputs], dtype=torch.float64)
