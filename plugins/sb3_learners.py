@@ -38,6 +38,7 @@ from __future__ import annotations
 
 import copy
 import json
+import math
 import shutil
 import tempfile
 import time
@@ -185,6 +186,7 @@ SAC_PRESETS: dict[str, dict[str, Any]] = {
         "gradient_steps": -1,
         "gamma": 0.99,
         "tau": 0.005,
+        "ent_coef": "auto",
         "net_width": 256,
         "net_layers": 2,
     },
@@ -484,6 +486,22 @@ def _train_metrics(model: Any) -> dict[str, float]:
     return out
 
 
+def sac_entropy_coefficient(value: str | float) -> str | float:
+    """SB3's ``ent_coef`` from the option: ``"auto"`` and ``"auto_X"`` (X > 0) as they are, a number
+    X > 0 as a float; anything else raises :class:`OptionError` naming the accepted forms."""
+    text = str(value).strip()
+    number = text[len("auto_"):] if text.startswith("auto_") else text
+    if text != "auto":
+        try:
+            x = float(number)
+        except ValueError:
+            x = math.nan
+        if not (math.isfinite(x) and x > 0):
+            raise OptionError(f"option 'ent_coef' of learner 'sac' must be auto, auto_X or a number X > 0; got {value!r}")
+        return text if text.startswith("auto_") else x
+    return text
+
+
 class SACLearner(SB3Learner):
     """Soft actor-critic (stable-baselines3 ``SAC``, MlpPolicy, CPU); presets in :data:`SAC_PRESETS`.
 
@@ -504,12 +522,15 @@ class SACLearner(SB3Learner):
         Option("gradient_steps", int, None, "gradient steps per training phase; -1 = as many as env steps collected (preset)", low=-1),
         Option("buffer_size", int, None, "replay buffer capacity in steps (default: task preset)", low=1),
         Option("tau", float, None, "target network soft-update rate (default: task preset)", low=0.0, high=1.0),
+        Option("ent_coef", str, None, "entropy coefficient: auto (tuned towards entropy -dim(u), starting at 1; preset), "
+               "auto_X (tuned, starting at X) or a fixed number X > 0"),
     )
 
     def _algorithm_kwargs(self, hp: dict[str, Any]) -> dict[str, Any]:
         if int(hp["gradient_steps"]) == 0:
             raise OptionError("option 'gradient_steps' of learner 'sac' must be >= 1 or -1 (as many as env steps collected); got 0")
         return {
+            "ent_coef": sac_entropy_coefficient(hp["ent_coef"]),
             "learning_rate": float(hp["learning_rate"]),
             "batch_size": int(hp["batch_size"]),
             "buffer_size": int(hp["buffer_size"]),

@@ -24,6 +24,7 @@ from plugins.sb3_learners import (  # noqa: E402
     feature_dim,
     from_bounds,
     make_agent_env,
+    sac_entropy_coefficient,
     to_bounds,
     whole_episode_rollout,
 )
@@ -140,6 +141,29 @@ def test_presets_are_overridden_by_set_options(cartpole):
     assert default["n_steps"] == default["eval_every_steps"] == 32 * 40 and default["batch_size"] == 80
     with pytest.raises(OptionError, match="n_steps"):
         SACLearner(spec, {"n_steps": 10})
+
+
+@pytest.mark.parametrize("value, expected", [("auto", "auto"), ("auto_0.1", "auto_0.1"), ("0.02", 0.02), (0.5, 0.5)])
+def test_sac_entropy_coefficient_forms(value, expected):
+    assert sac_entropy_coefficient(value) == expected
+
+
+@pytest.mark.parametrize("value", ["0", "-1", "auto_", "auto_0", "nan", "inf", "fixed", "auto-0.1"])
+def test_sac_entropy_coefficient_rejects_bad_values_in_one_line(value):
+    with pytest.raises(OptionError, match="'ent_coef' of learner 'sac' must be auto, auto_X or a number X > 0"):
+        sac_entropy_coefficient(value)
+
+
+def test_sac_fixed_entropy_coefficient_reaches_sb3_and_its_checkpoint(cartpole):
+    """``ent_coef=0.05`` builds SB3's SAC with that fixed coefficient (no tuning, no optimiser for it); the
+    checkpoint then holds SB3's fixed tensor instead of log_ent_coef. The preset's "auto" tunes it."""
+    fixed, _, generator, interaction = _first_handover(SACLearner, {**SAC_SMALL, "ent_coef": "0.05"}, cartpole, seed=1)
+    generator.close()
+    interaction.close()
+    assert fixed._model.ent_coef_optimizer is None and float(fixed._model.ent_coef_tensor) == pytest.approx(0.05)
+    state = fixed.state_dict()
+    assert set(state["variables"]) == {"ent_coef_tensor"} and "ent_coef_optimizer" not in state["parameters"]
+    assert SACLearner(cartpole.spec).hyperparameters()["ent_coef"] == "auto"
 
 
 @pytest.mark.parametrize("horizon, n_steps", [(40, 1280), (100, 1600), (67, 1072), (30, 960), (500, 8000)])
