@@ -8,7 +8,11 @@ networks see and emit:
 * observations: the task's observation with every angle ``spec.angle_indices`` replaced by its
   ``sin`` and ``cos`` (:func:`angle_features`), as the GP sees them;
 * actions: in ``[-1, 1]`` per dimension (SB3's advice for Gaussian / squashed policies), mapped
-  affinely to ``[action_low, action_high]`` (:func:`to_bounds`).
+  affinely to ``[action_low, action_high]`` (:func:`to_bounds`);
+* rewards: ``-cost``, and where an episode terminates early (the unicycle fell) the terminating
+  step also carries the cost the episode would have gone on paying in its absorbing region up to
+  the horizon (:class:`HeldCostAtTermination`), so that falling sooner is not cheaper for the agent
+  than for the evaluation (:meth:`~harness.task.Episode.horizon_cost`).
 
 Hand-over: ``model.learn(K, reset_num_timesteps=False)`` in a loop, ``K = eval_every_steps``
 counted steps per hand-over (SAC: 5 episodes by default; it trains once per episode, so each
@@ -137,9 +141,45 @@ class NormalisedActions(gym.ActionWrapper):
         return to_bounds(action, self.low, self.high)
 
 
-def make_agent_env(env: gym.Env, spec: TaskSpec) -> gym.Env:
-    """``env`` (the interaction's view) as the agent sees it: sin/cos features, actions in [-1, 1]."""
-    return AngleFeatures(NormalisedActions(env, spec.action_low, spec.action_high), spec.angle_indices)
+class HeldCostAtTermination(gym.Wrapper):
+    """An early-terminated episode's held cost, on its terminating step's reward.
+
+    A task whose episode terminates before the horizon (the unicycle fell) leaves a region that is
+    absorbing: the system would stay there, paying its last cost ``c_T`` at every step up to the
+    horizon ``H``, and the harness scores the episode that way (:meth:`~harness.task.Episode.horizon_cost`).
+    Ended early without that, the agent's return would be the cost of the ``T`` steps taken only,
+    so the sooner it fell the less it would pay (SAC and PPO then learn to fall at once). Here the
+    terminating step's reward is ``-c_T (1 + gamma + ... + gamma^(H - T))``: the agent's discounted
+    return equals that of the episode continued in the absorbing region to the horizon (with
+    ``gamma = 1``: minus the evaluation's ``horizon_cost``). Episodes that reach the horizon
+    (truncated) are unchanged. Only the agent's view changes; the interaction records the true costs.
+    """
+
+    def __init__(self, env: gym.Env, horizon: int, gamma: float) -> None:
+        super().__init__(env)
+        self.horizon = int(horizon)
+        self.gamma = float(gamma)
+        self._steps = 0
+
+    def reset(self, **kwargs):
+        self._steps = 0
+        return self.env.reset(**kwargs)
+
+    def step(self, action):
+        obs, reward, terminated, truncated, info = self.env.step(action)
+        self._steps += 1
+        if terminated:
+            missing = max(self.horizon - self._steps, 0)
+            weight = missing if self.gamma == 1.0 else self.gamma * (1.0 - self.gamma ** missing) / (1.0 - self.gamma)
+            reward = float(reward) * (1.0 + weight)
+        return obs, reward, terminated, truncated, info
+
+
+def make_agent_env(env: gym.Env, spec: TaskSpec, gamma: float = 1.0) -> gym.Env:
+    """``env`` (the interaction's view) as the agent sees it: sin/cos features, actions in [-1, 1],
+    an early termination's held cost discounted with the agent's ``gamma`` (:class:`HeldCostAtTermination`)."""
+    held = HeldCostAtTermination(env, spec.horizon, gamma)
+    return AngleFeatures(NormalisedActions(held, spec.action_low, spec.action_high), spec.angle_indices)
 
 
 class SB3Policy:
@@ -324,7 +364,7 @@ class SB3Learner(Learner):
         torch.set_num_threads(int(self.options["torch_threads"]))
         hp = self.hyperparameters()
         rng = global_rng_state()  # a resume's, restored by the harness: building the model reseeds
-        model = self.build_model(make_agent_env(interaction.as_env(), self.spec), hp)
+        model = self.build_model(make_agent_env(interaction.as_env(), self.spec, float(hp["gamma"])), hp)
         self._model = model
         if self._resume_state is not None:
             self._restore(model, self._resume_state)
@@ -590,6 +630,7 @@ class PPOLearner(SB3Learner):
 
 __all__ = [
     "AngleFeatures",
+    "HeldCostAtTermination",
     "NormalisedActions",
     "PPOLearner",
     "PPO_MINIBATCHES",
@@ -605,6 +646,7 @@ __all__ = [
     "make_agent_env",
     "normalised_action_space",
     "preset",
+    "sac_entropy_coefficient",
     "to_bounds",
     "whole_episode_rollout",
 ]

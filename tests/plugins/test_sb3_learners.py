@@ -93,6 +93,56 @@ def test_agent_env_sees_sin_cos_and_drives_the_system_in_control_units(cartpole)
     assert interaction.steps == 2
 
 
+def _rollout_agent_env(task, gamma, action, seed=3):
+    """One episode of a constant agent action through :func:`make_agent_env`: the agent's rewards and the recorded episode."""
+    interaction = Interaction(task.make_env(), task.spec, seed=seed)
+    env = make_agent_env(interaction.as_env(), task.spec, gamma)
+    env.reset()
+    rewards, done = [], False
+    while not done:
+        _, reward, terminated, truncated, _ = env.step(np.asarray(action, dtype=np.float32))
+        rewards.append(reward)
+        done = terminated or truncated
+    interaction.close()
+    return np.array(rewards), interaction.episodes[0]
+
+
+@pytest.mark.parametrize("gamma", [1.0, 0.99, 0.9])
+def test_an_early_fall_costs_the_agent_what_continuing_to_the_horizon_would(gamma):
+    """The unicycle without torque falls before its horizon; the agent's discounted return equals the
+    one of the recorded costs continued with the last cost up to the horizon (gamma = 1: minus the
+    evaluation's horizon_cost), computed here from the episode; the interaction records the true costs."""
+    task = load_task("unicycle")()
+    rewards, episode = _rollout_agent_env(task, gamma, [0.0, 0.0])
+    H = task.spec.horizon
+    assert episode.terminated and 1 < episode.steps < H
+    np.testing.assert_allclose(rewards[:-1], -episode.costs[:-1], rtol=1e-12)
+    continued = np.concatenate([episode.costs, np.full(H - episode.steps, episode.costs[-1])])
+    discounted = lambda r: float(np.sum(r * gamma ** np.arange(len(r))))
+    assert discounted(rewards) == pytest.approx(-discounted(continued), rel=1e-12)
+    if gamma == 1.0:
+        assert rewards.sum() == pytest.approx(-episode.horizon_cost(H), rel=1e-12)
+
+
+def test_episodes_that_reach_the_horizon_keep_their_rewards(cartpole):
+    rewards, episode = _rollout_agent_env(cartpole, 0.99, [0.3])
+    assert not episode.terminated and episode.steps == cartpole.spec.horizon
+    np.testing.assert_array_equal(rewards, -episode.costs)
+
+
+def test_the_learners_discount_the_held_cost_with_their_gamma(cartpole):
+    """SB3 trains on the interaction through HeldCostAtTermination with the run's gamma."""
+    from plugins.sb3_learners import HeldCostAtTermination
+
+    learner, _, generator, interaction = _first_handover(SACLearner, {**SAC_SMALL, "gamma": "0.95"}, cartpole, seed=1)
+    env = learner._model.get_env().envs[0]
+    while not isinstance(env, HeldCostAtTermination):
+        env = env.env
+    generator.close()
+    interaction.close()
+    assert env.gamma == 0.95 and env.horizon == cartpole.spec.horizon
+
+
 def test_agent_env_passes_sb3_env_checker(cartpole):
     from stable_baselines3.common.env_checker import check_env
 
