@@ -313,6 +313,9 @@ class SB3Learner(Learner):
     default_max_trials = None
     algorithm: ClassVar[str] = ""
     presets: ClassVar[dict[str, dict[str, Any]]] = {}
+    #: the top-level modules of SB3's policy that the deterministic policy uses (``None``: all); a saved
+    #: policy holds only their tensors (:meth:`policy_state`)
+    acting_modules: ClassVar[tuple[str, ...] | None] = None
 
     # -- hyperparameters ------------------------------------------------------------------
     def hyperparameters(self) -> dict[str, Any]:
@@ -465,9 +468,9 @@ class SB3Learner(Learner):
 
     @classmethod
     def policy_state(cls, policy: Policy) -> dict[str, Any]:
-        """The network's tensors (``weights``: its ``state_dict``), the plain constructor arguments that
-        rebuild it (``kwargs``: :data:`POLICY_KWARGS`), its input and output sizes. Not SB3's ``.zip``,
-        whose metadata is cloudpickled (reading it runs code)."""
+        """The tensors that act (``weights``: the network's ``state_dict``, only its :attr:`acting_modules`
+        where set), the plain constructor arguments that rebuild it (``kwargs``: :data:`POLICY_KWARGS`),
+        its input and output sizes. Not SB3's ``.zip``, whose metadata is cloudpickled (reading it runs code)."""
         if not isinstance(policy, SB3Policy):
             raise TypeError(f"an SB3 learner's policy is an SB3Policy, not a {type(policy).__name__}")
         network = policy.network
@@ -477,8 +480,13 @@ class SB3Learner(Learner):
             "observation_dim": int(network.observation_space.shape[0]),
             "action_dim": int(network.action_space.shape[0]),
             "kwargs": {k: arguments[k] for k in POLICY_KWARGS if k in arguments},
-            "weights": {k: v.detach().clone() for k, v in network.state_dict().items()},
+            "weights": {k: v.detach().clone() for k, v in network.state_dict().items() if cls._acts(k)},
         }
+
+    @classmethod
+    def _acts(cls, key: str) -> bool:
+        """Whether the ``state_dict`` entry ``key`` belongs to a module the deterministic policy uses."""
+        return cls.acting_modules is None or key.split(".", 1)[0] in cls.acting_modules
 
     @classmethod
     def policy_from_state(cls, state: dict[str, Any], spec: TaskSpec) -> SB3Policy:
@@ -492,7 +500,11 @@ class SB3Learner(Learner):
         if not isinstance(kwargs, dict) or not set(kwargs) <= set(POLICY_KWARGS):
             raise ValueError(f"constructor arguments {sorted(kwargs)} beyond {list(POLICY_KWARGS)}")
         network = cls._policy_class()(feature_space(features), normalised_action_space((spec.action_dim,)), _no_learning, **kwargs)
-        network.load_state_dict(state["weights"])  # strict: missing or unexpected tensors are a RuntimeError
+        # every acting tensor must be there, nothing unknown may be (older saves also hold SAC's critics)
+        missing, unexpected = network.load_state_dict(state["weights"], strict=False)
+        missing = [k for k in missing if cls._acts(k)]
+        if missing or unexpected:
+            raise ValueError(f"a {cls.algorithm} network's tensors do not match: missing {missing}, unexpected {unexpected}")
         network.set_training_mode(False)
         return SB3Policy(network, spec)
 
@@ -555,6 +567,8 @@ class SACLearner(SB3Learner):
     description = "soft actor-critic (stable-baselines3), sin/cos angle features, actions in [-1, 1]"
     algorithm = "SAC"
     presets = SAC_PRESETS
+    #: the actor: the critics (two Q networks and their targets, ~4x the actor's tensors) do not act
+    acting_modules = ("actor",)
     default_budget_seconds = 1.0e4
     options = _COMMON_OPTIONS + (
         Option("learning_starts", int, None, "random-action steps before learning starts (default: task preset)", low=0),

@@ -300,6 +300,30 @@ def test_saved_policy_reloads_with_the_same_actions(cartpole, tmp_path, learner_
     assert np.all(np.abs(after) <= 10.0) and np.ptp(after) > 0  # in the bounds, not constant
 
 
+def test_a_saved_sac_policy_holds_its_actor_only_and_older_full_saves_still_load(cartpole):
+    """SAC's saved policy keeps the actor's tensors (the critics and their targets do not act: at the
+    preset's 256x256 nets they are ~80 % of the bytes); a save of the whole network (older harness)
+    loads with the same actions; a missing actor tensor or an unknown one is an error."""
+    learner, policy, generator, interaction = _first_handover(SACLearner, SAC_SMALL, cartpole, seed=2)
+    generator.close()
+    interaction.close()
+    state = SACLearner.policy_state(policy)
+    full = policy.network.state_dict()
+    assert state["weights"] and all(k.startswith("actor.") for k in state["weights"])
+    assert set(state["weights"]) == {k for k in full if k.startswith("actor.")}
+    assert 3 * sum(v.numel() for v in state["weights"].values()) < sum(v.numel() for v in full.values())
+    probes = _probes(cartpole.spec)
+    expected = np.array([policy(x) for x in probes])
+    for weights in (state["weights"], {k: v.clone() for k, v in full.items()}):
+        reloaded = SACLearner.policy_from_state({**state, "weights": weights}, cartpole.spec)
+        np.testing.assert_array_equal(np.array([reloaded(x) for x in probes]), expected)
+    missing = {k: v for k, v in state["weights"].items() if k != "actor.mu.weight"}
+    with pytest.raises(ValueError, match=r"missing \['actor.mu.weight'\]"):
+        SACLearner.policy_from_state({**state, "weights": missing}, cartpole.spec)
+    with pytest.raises(ValueError, match="unexpected"):
+        SACLearner.policy_from_state({**state, "weights": {**state["weights"], "extra.weight": full["actor.mu.weight"]}}, cartpole.spec)
+
+
 @pytest.mark.parametrize("learner_cls, options", [(SACLearner, SAC_SMALL), (PPOLearner, PPO_SMALL)])
 def test_same_seed_same_first_handover_other_seed_differs(cartpole, learner_cls, options):
     actions = {}
