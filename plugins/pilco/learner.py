@@ -15,6 +15,10 @@ term (alpha^2 - tr((K + sigma^2 I)^-1 Q), paper eq. 23) is dropped, everything e
 Per-task defaults (controller, size, initial rollouts, sparse threshold, ...) are *presets* keyed
 by task name (reference ``settings_*.m``); every entry can be overridden with ``--set``. A task
 without a preset gets the generic one (RBF policy, sin/cos of the spec's angles).
+
+The presets (:mod:`plugins.pilco.presets`) are plain data; torch and PILCO's machinery (GP,
+objective, search, :mod:`plugins.pilco.policy`) are imported where they run, so loading this class
+(``harness list``) stays instant.
 """
 
 from __future__ import annotations
