@@ -385,7 +385,9 @@ class SB3Learner(Learner):
                 self.metrics["sb3_steps_per_second"] = (interaction.steps - steps_before) / max(elapsed, 1e-9)
                 self.metrics["sb3_num_timesteps"] = float(model.num_timesteps)
                 self.metrics.update(_train_metrics(model))
-                if model.ep_info_buffer:  # SB3's Monitor: the last (up to 100) training episodes
+                # SB3's Monitor: the last (up to 100) training episodes' undiscounted cost as the agent saw it (an
+                # early termination's held cost included, discounted: HeldCostAtTermination)
+                if model.ep_info_buffer:
                     self.metrics["sb3_train_episode_cost"] = -float(np.mean([ep["r"] for ep in model.ep_info_buffer]))
                 yield policy
         finally:
