@@ -317,6 +317,11 @@ class SB3Learner(Learner):
     #: policy holds only their tensors (:meth:`policy_state`)
     acting_modules: ClassVar[tuple[str, ...] | None] = None
 
+    def __init__(self, spec: TaskSpec, options: dict[str, Any] | None = None, seed: int = 0) -> None:
+        super().__init__(spec, options, seed)
+        # the SB3 arguments' own checks (e.g. SAC's ent_coef) fail here, before the harness logs a run
+        self._algorithm_kwargs(self.hyperparameters())
+
     # -- hyperparameters ------------------------------------------------------------------
     def hyperparameters(self) -> dict[str, Any]:
         """The task preset with every option that was set (not ``None``) applied on top."""
@@ -544,16 +549,16 @@ def sac_entropy_coefficient(value: str | float) -> str | float:
     """SB3's ``ent_coef`` from the option: ``"auto"`` and ``"auto_X"`` (X > 0) as they are, a number
     X > 0 as a float; anything else raises :class:`OptionError` naming the accepted forms."""
     text = str(value).strip()
-    number = text[len("auto_"):] if text.startswith("auto_") else text
-    if text != "auto":
-        try:
-            x = float(number)
-        except ValueError:
-            x = math.nan
-        if not (math.isfinite(x) and x > 0):
-            raise OptionError(f"option 'ent_coef' of learner 'sac' must be auto, auto_X or a number X > 0; got {value!r}")
-        return text if text.startswith("auto_") else x
-    return text
+    if text == "auto":
+        return text
+    number = text.removeprefix("auto_")
+    try:
+        x = float(number)
+    except ValueError:
+        x = math.nan
+    if not (math.isfinite(x) and x > 0):
+        raise OptionError(f"option 'ent_coef' of learner 'sac' must be auto, auto_X or a number X > 0; got {value!r}")
+    return text if number != text else x
 
 
 class SACLearner(SB3Learner):

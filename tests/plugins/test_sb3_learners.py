@@ -204,6 +204,14 @@ def test_sac_entropy_coefficient_rejects_bad_values_in_one_line(value):
         sac_entropy_coefficient(value)
 
 
+@pytest.mark.parametrize("options, message", [({"ent_coef": "0"}, "'ent_coef' of learner 'sac' must be"),
+                                              ({"gradient_steps": "0"}, "'gradient_steps' of learner 'sac' must be")])
+def test_bad_sb3_arguments_are_refused_when_the_learner_is_built(cartpole, options, message):
+    """Checked at construction, which the runner does before it starts a tracked run (no FAILED run is left)."""
+    with pytest.raises(OptionError, match=message):
+        SACLearner(cartpole.spec, options)
+
+
 def test_sac_fixed_entropy_coefficient_reaches_sb3_and_its_checkpoint(cartpole):
     """``ent_coef=0.05`` builds SB3's SAC with that fixed coefficient (no tuning, no optimiser for it); the
     checkpoint then holds SB3's fixed tensor instead of log_ent_coef. The preset's "auto" tunes it."""
