@@ -23,7 +23,7 @@ from typing import Any, Protocol, runtime_checkable
 import torch
 from torch import nn
 
-from plugins.pilco.kernels import cholesky, se_ard
+from plugins.pilco.kernels import cho_inverse, cho_solve, cholesky, se_ard
 from plugins.pilco.moments import MomentMatchingGP
 from plugins.pilco.posterior import GPPosterior
 from plugins.pilco.trig import SQUASH_KINDS, _sin_backward, _sin_forward, squash, squash_maps, squash_moments
@@ -175,8 +175,8 @@ class RBFController(nn.Module):
         gram = se_ard(self.centres, self.centres, self.log_ell, log_alpha)  # (F, n_c, n_c)
         gram = gram + RBF_NOISE_STD**2 * torch.eye(self.centres.shape[0], dtype=torch.float64, device=self.centres.device)
         chol = cholesky(gram, "RBF policy Gram matrix")
-        beta = torch.cholesky_solve(self.targets.T[..., None], chol).squeeze(-1)  # (F, n_c)
-        return GPPosterior(self.centres, beta, torch.cholesky_inverse(chol), self.log_ell, log_alpha, log_sigma)
+        beta = cho_solve(chol, self.targets.T[..., None]).squeeze(-1)  # (F, n_c)
+        return GPPosterior(self.centres, beta, cho_inverse(chol), self.log_ell, log_alpha, log_sigma)
 
     def forward(self, x: torch.Tensor) -> torch.Tensor:
         post = self.posterior()

@@ -26,6 +26,7 @@ import torch
 
 from harness.errors import NumericalError
 from harness.task import SaturatingCost
+from plugins.pilco.kernels import deferred_flags
 from plugins.pilco.trig import augment_trig
 
 
@@ -40,7 +41,10 @@ def gaussian_saturation(m_r: torch.Tensor, S_r: torch.Tensor, width: float) -> t
     def expected_gauss(scale2: float) -> torch.Tensor:
         # E[exp(-|r|^2 / (2 scale2))] = |I + S_r/scale2|^-1/2 exp(-1/2 m^T (S_r + scale2 I)^-1 m)
         chol, info = torch.linalg.cholesky_ex(S_r + scale2 * eye)
-        if bool((info != 0).any()):
+        flags = deferred_flags()
+        if flags is not None:
+            flags.append(info)
+        elif bool((info != 0).any()):
             bad = torch.nonzero(info.reshape(-1)).reshape(-1).tolist()
             raise NumericalError(
                 f"the predicted cost's covariance is not positive definite at prediction step(s) {bad[:5]} "

@@ -9,6 +9,10 @@ Conventions used throughout ``plugins.pilco``:
 
 from __future__ import annotations
 
+import threading
+from collections.abc import Iterator
+from contextlib import contextmanager
+
 import torch
 
 from harness.errors import NumericalError
@@ -38,14 +42,89 @@ def se_ard(x1: torch.Tensor, x2: torch.Tensor, log_ell: torch.Tensor, log_alpha:
     return torch.exp(2.0 * log_alpha)[:, None, None] * torch.exp(-0.5 * sq)
 
 
+_deferred = threading.local()
+
+
+@contextmanager
+def deferred_checks() -> Iterator[list[torch.Tensor]]:
+    """Factorisations inside the block do not stop to check for failure: each appends its ``info``
+    tensor (non-zero where it failed) to the yielded list instead of reading it on the host.
+
+    A check reads a GPU value on the host, which waits for the GPU (a host-device synchronisation
+    per check) and cannot be captured in a CUDA graph. Inside this block the factorisations of the
+    policy objective (:func:`cholesky`, :func:`cholesky_checked`) return their factor as is; the
+    caller reads every ``info`` once at the end (:func:`any_failed`) and, if one failed, redoes the
+    computation outside the block, where the checks raise (or retry with jitter) as usual. Results
+    are the same whenever nothing failed: the factor is the one the checked path would return.
+    """
+    outer = getattr(_deferred, "flags", None)
+    flags: list[torch.Tensor] = []
+    _deferred.flags = flags
+    try:
+        yield flags
+    finally:
+        _deferred.flags = outer
+
+
+def deferred_flags() -> list[torch.Tensor] | None:
+    """The list of :func:`deferred_checks` in force (in this thread), or ``None`` outside one."""
+    return getattr(_deferred, "flags", None)
+
+
+def any_failed(flags: list[torch.Tensor], like: torch.Tensor) -> torch.Tensor:
+    """0-d bool tensor (on ``like``'s device, no host read): did any factorisation of :func:`deferred_checks` fail?"""
+    if not flags:
+        return torch.zeros((), dtype=torch.bool, device=like.device)
+    return torch.stack([(f != 0).any() for f in flags]).any()
+
+
+def cholesky_checked(matrix: torch.Tensor) -> torch.Tensor:
+    """``torch.linalg.cholesky`` (raises :class:`torch.linalg.LinAlgError` on failure), or inside
+    :func:`deferred_checks` the same factor with the failure recorded instead."""
+    flags = deferred_flags()
+    if flags is None:
+        return torch.linalg.cholesky(matrix)
+    chol, info = torch.linalg.cholesky_ex(matrix)
+    flags.append(info)
+    return chol
+
+
+def cho_solve(chol: torch.Tensor, rhs: torch.Tensor, triangular: bool | None = None) -> torch.Tensor:
+    """``A^-1 rhs`` from the lower Cholesky factor ``chol`` of ``A`` (``torch.cholesky_solve``).
+
+    Off the CPU: two triangular solves (cuBLAS). ``torch.cholesky_solve`` and
+    ``torch.cholesky_inverse`` run MAGMA's batched routines on a GPU, which wait for the host and
+    cannot be captured in a CUDA graph; the triangular solves round differently by a few ulps.
+    ``triangular``: force either way (``None``: by device)."""
+    if not (chol.device.type != "cpu" if triangular is None else triangular):
+        return torch.cholesky_solve(rhs, chol)
+    half = torch.linalg.solve_triangular(chol, rhs, upper=False)
+    return torch.linalg.solve_triangular(chol.mT, half, upper=True)
+
+
+def cho_inverse(chol: torch.Tensor, triangular: bool | None = None) -> torch.Tensor:
+    """``A^-1`` from the lower Cholesky factor ``chol`` of ``A`` (``torch.cholesky_inverse``; off the
+    CPU ``L^-T L^-1`` by a triangular solve, see :func:`cho_solve`)."""
+    if not (chol.device.type != "cpu" if triangular is None else triangular):
+        return torch.cholesky_inverse(chol)
+    eye = torch.eye(chol.shape[-1], dtype=chol.dtype, device=chol.device).expand(chol.shape)
+    inv_l = torch.linalg.solve_triangular(chol, eye, upper=False)
+    return inv_l.mT @ inv_l
+
+
 def cholesky(matrix: torch.Tensor, what: str = "matrix") -> torch.Tensor:
     """Lower Cholesky factor of a (batch of) symmetric positive-definite matrices.
 
     Tries the plain factorisation, then adds jitter ``1e-9 * mean(diag)``, escalating by x10 up to
     ``1e-3 * mean(diag)``. Raises :class:`NumericalError` naming ``what`` if all attempts fail.
-    Differentiable (the jitter is treated as a constant).
+    Differentiable (the jitter is treated as a constant). Inside :func:`deferred_checks`: the plain
+    factorisation only, its failure recorded (the caller redoes the work with the retries if so).
     """
     chol, info = torch.linalg.cholesky_ex(matrix)
+    flags = deferred_flags()
+    if flags is not None:
+        flags.append(info)
+        return chol
     if not bool(torch.any(info)):
         return chol
     eye = torch.eye(matrix.shape[-1], dtype=matrix.dtype, device=matrix.device)

@@ -158,6 +158,8 @@ class Pilco(Learner):
                "torch (the reference) or auto (numba where installed)", choices=("auto", "numba", "torch"), execution=True),
         Option("device", str, "cpu", "where the GP is trained and J computed: cpu, cuda (a GPU; kernel torch) or auto "
                "(cuda where torch sees one)", choices=("cpu", "cuda", "auto"), execution=True),
+        Option("cuda_graph", bool, True, "on a GPU, capture J + dJ once per policy search as a CUDA graph and replay it "
+               "(false: launch every operation each evaluation)", execution=True),
         Option("plots", bool, True, "save the predicted-vs-realised cost plot per trial"),
         Option("sample_particles", int, 500, "particles for J_sampled, the policy's cost by Monte Carlo through the same GP "
                "(checks the moment-matching J; 0 = off)", low=0),
@@ -283,7 +285,7 @@ class Pilco(Learner):
                 objective = PolicyObjective(
                     controller, posterior, self.layout, spec.cost, spec.init_mean, spec.init_cov,
                     self.horizon, mean_only=self.mean_only, width=self.cost_width, policy_noise_std=self.policy_noise_std,
-                    kernel=kernel, threads=threads, device=self.device,
+                    kernel=kernel, threads=threads, device=self.device, cuda_graph=o["cuda_graph"],
                 )
                 previous = objective.get_flat()
                 try:

@@ -65,6 +65,7 @@ from functools import lru_cache
 
 import torch
 
+from plugins.pilco.kernels import cho_inverse, cholesky_checked
 from plugins.pilco.posterior import GPPosterior
 
 #: implementations of the Q contraction: ``torch`` (the reference, always available) and ``numba``
@@ -110,6 +111,13 @@ def _pair_indices(num_outputs: int) -> tuple[torch.Tensor, torch.Tensor, torch.T
     full = [lookup[(min(a, b), max(a, b))] for a in range(e) for b in range(e)]
     as_long = lambda values: torch.tensor(values, dtype=torch.long, device="cpu")  # noqa: E731
     return as_long([p[0] for p in pairs]), as_long([p[1] for p in pairs]), as_long(full)
+
+
+@lru_cache(maxsize=32)
+def _pair_indices_on(num_outputs: int, device: torch.device) -> tuple[torch.Tensor, torch.Tensor, torch.Tensor]:
+    """:func:`_pair_indices` on ``device``, copied there once (a copy from the host inside every J
+    would be a host-device transfer per evaluation, and cannot be captured in a CUDA graph)."""
+    return tuple(t.to(device) for t in _pair_indices(num_outputs))
 
 
 #: memory one :class:`MomentMatchingGP` may hold for the ``Q`` of a rollout's steps between its
@@ -348,7 +356,7 @@ class MomentMatchingGP:
         self.posterior = posterior
         beta = posterior.beta
         self.num_outputs = e = beta.shape[0]
-        first, second, self.full = (t.to(device) for t in _pair_indices(e))
+        first, second, self.full = _pair_indices_on(e, torch.device(device))
         self.num_pairs = p = first.shape[0]
         X = posterior.inputs
         self.input_dim = d = X.shape[1]
@@ -414,8 +422,8 @@ class MomentMatchingGP:
 
         # One batched Cholesky for B_a = iL_a S iL_a + I (mean, cross-cov; E of them) and for
         # B_ab = D S D + I, D^2 = Lambda_a^-1 + Lambda_b^-1 (Q; P of them).
-        chol = torch.linalg.cholesky(torch.addcmul(self.eye, self.scale_outer, S))
-        b_inv = torch.cholesky_inverse(chol)  # (E + P, d, d)
+        chol = cholesky_checked(torch.addcmul(self.eye, self.scale_outer, S))
+        b_inv = cho_inverse(chol)  # (E + P, d, d)
         half_logdet = chol.diagonal(dim1=-2, dim2=-1).log().sum(-1)  # (E + P,)
         # W = [B_a^-1; T; T],  T = R^-1 S / 2 = D^-1 (I - B^-1) D^-1 / 2,  R = S (Lambda_a^-1 + Lambda_b^-1) + I
         W = (self.w_offset - b_inv[self.w_index]) * self.w_coef  # (G, d, d)

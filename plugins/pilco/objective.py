@@ -18,6 +18,7 @@ import torch
 
 from harness.task import SaturatingCost
 from plugins.pilco.cost import CostMoments
+from plugins.pilco.kernels import any_failed, deferred_checks
 from plugins.pilco.moments import MomentMatchingGP
 from plugins.pilco.posterior import GPPosterior
 from plugins.pilco.propagate import StateLayout, rollout
@@ -43,6 +44,13 @@ class PolicyObjective:
         device: where J is computed (``None``: where the posterior is, normally the CPU; e.g.
             ``"cuda"``). The posterior, the distributions and the controller are moved there (the
             controller in place); theta goes in and dJ comes out as NumPy arrays on the host.
+        cuda_graph: on a GPU, capture J + dJ once as a CUDA graph and replay it for every theta
+            (:meth:`value_and_grad`); ``False``: launch every operation anew each time.
+
+    Off the CPU, J + dJ runs with its factorisations' failure checks deferred to the end
+    (:func:`~plugins.pilco.kernels.deferred_checks`: one host read per evaluation instead of one
+    per step); if one failed, the evaluation is redone with the checks in place, so it raises (or
+    retries with jitter) exactly as on the CPU.
     """
 
     def __init__(
@@ -60,6 +68,7 @@ class PolicyObjective:
         kernel: str | None = None,
         threads: int = 1,
         device: torch.device | str | None = None,
+        cuda_graph: bool = True,
     ) -> None:
         self.device = posterior.beta.device if device is None else torch.device(device)
         self.controller = controller.to(self.device)
@@ -75,6 +84,11 @@ class PolicyObjective:
         self.policy_noise = None if policy_noise_std is None else layout.policy_noise_cov(policy_noise_std).to(self.device)
         self.params = [p for p in controller.parameters() if p.requires_grad]
         self.num_params = sum(p.numel() for p in self.params)
+        self.policy_noise_std = policy_noise_std
+        self.defer_checks = self.device.type != "cpu"  # see the class docstring
+        self.cuda_graph = bool(cuda_graph) and self.device.type == "cuda"
+        self.graph_error: str | None = None  # why capturing failed, if it did (then every evaluation runs eagerly)
+        self._graph = None  # (key, CUDAGraph, static output [J, failed, dJ...])
 
     # ---- closed form ----------------------------------------------------------------------------
     def state_distributions(self) -> tuple[torch.Tensor, torch.Tensor]:
@@ -117,8 +131,53 @@ class PolicyObjective:
     def value_and_grad(self, theta: np.ndarray) -> tuple[float, np.ndarray]:
         """``(J, dJ/dtheta)`` at ``theta`` (the controller keeps ``theta`` afterwards)."""
         self.set_flat(theta)
+        if self.defer_checks:
+            out = self._graph_replay() if self.cuda_graph and self.graph_error is None else self._deferred_output()
+            out = out.cpu().numpy()  # the one host read of the evaluation
+            if not out[1]:
+                return float(out[0]), out[2:].copy()
+        return self._checked_value_and_grad()
+
+    def _checked_value_and_grad(self) -> tuple[float, np.ndarray]:
+        """J + dJ with every factorisation checked where it happens (raises as documented)."""
         J = self.value()
         grads = torch.autograd.grad(J, self.params)
         return float(J.detach()), torch.cat([g.reshape(-1) for g in grads]).cpu().numpy().copy()
+
+    def _deferred_output(self) -> torch.Tensor:
+        """``[J, failed, dJ...]`` as one tensor on the device, the factorisations' checks deferred
+        (nothing read on the host: the computation can be captured in a CUDA graph)."""
+        with deferred_checks() as flags:
+            J = self.value()
+            grads = torch.autograd.grad(J, self.params)
+            failed = any_failed(flags, J)
+        return torch.cat([J.detach().reshape(1), failed.to(J.dtype).reshape(1), *(g.reshape(-1) for g in grads)])
+
+    def _graph_replay(self) -> torch.Tensor:
+        """:meth:`_deferred_output` through a CUDA graph captured at the first call (after two
+        eager warm-up calls on a side stream, as CUDA graphs require) and replayed after; the
+        controller's parameters are the graph's input (written in place by :meth:`set_flat`).
+        If capturing fails, :attr:`graph_error` says why and evaluations run eagerly from then on."""
+        key = (self.horizon, self.mean_only, self.policy_noise is None)
+        if self._graph is None or self._graph[0] != key:
+            self._graph = None
+            stream = torch.cuda.Stream(self.device)
+            stream.wait_stream(torch.cuda.current_stream(self.device))
+            try:
+                with torch.cuda.stream(stream):
+                    for _ in range(2):
+                        self._deferred_output()
+                torch.cuda.current_stream(self.device).wait_stream(stream)
+                graph = torch.cuda.CUDAGraph()
+                with torch.cuda.graph(graph):
+                    static = self._deferred_output()
+            except RuntimeError as exc:
+                self.graph_error = f"{type(exc).__name__}: {str(exc).splitlines()[0]}"
+                torch.cuda.synchronize(self.device)
+                return self._deferred_output()
+            self._graph = (key, graph, static)
+        _, graph, static = self._graph
+        graph.replay()
+        return static
 
     __call__ = value_and_grad

@@ -23,7 +23,7 @@ gradients, a plain callable policy) autograd differentiates :func:`propagate_ste
 from __future__ import annotations
 
 from dataclasses import dataclass
-from functools import cached_property
+from functools import cached_property, lru_cache
 
 import numpy as np
 import torch
@@ -313,8 +313,11 @@ class FusedStep:
         return (g_m, g_S, *g_policy)
 
 
+@lru_cache(maxsize=64)
 def _selection(indices: tuple[int, ...], size: int, device: torch.device | None = None) -> torch.Tensor:
-    """``(len(indices), size)`` 0/1 matrix ``P`` with ``P @ v = v[indices]``."""
+    """``(len(indices), size)`` 0/1 matrix ``P`` with ``P @ v = v[indices]`` (built once per
+    arguments and shared: read it, never write to it; on a GPU a copy from the host per J would be
+    a transfer per evaluation that a CUDA graph cannot hold)."""
     P = torch.zeros(len(indices), size, dtype=torch.float64, device="cpu")
     P[torch.arange(len(indices), device="cpu"), torch.tensor(indices, dtype=torch.long, device="cpu")] = 1.0
     return P.to(device) if device is not None else P
