@@ -75,6 +75,8 @@ class McPilco(Learner):
         Option("window", int, 100, "steps per window of the monitoring signal (mean estimate)", low=1),
         Option("min_improvement", float, 0.01, "a window mean at least this much (relative) below the one before is progress", low=0.0),
         Option("threads", int, None, "CPU threads (default: the harness's choice; harness.threads)", low=1, execution=True),
+        Option("device", str, "cpu", "where the GP is trained and the particles run: cpu, cuda (a GPU) or auto (cuda where "
+               "torch sees one)", choices=("cpu", "cuda", "auto"), execution=True),
     )
 
     def __init__(self, spec: TaskSpec, options: dict[str, Any] | None = None, seed: int = 0) -> None:
@@ -90,6 +92,9 @@ class McPilco(Learner):
             raise OptionError(f"mc-pilco on {spec.name}: {exc}") from None
         self.horizon = o["planning_horizon"] or preset.planning_horizon or spec.horizon
         self.cost_width = o["cost_width"] or preset.cost_width
+        from plugins.pilco.learner import resolve_device
+
+        self.device = resolve_device(o["device"])
         self._state: dict[str, Any] = {}
 
     @classmethod
@@ -109,9 +114,11 @@ class McPilco(Learner):
 
         spec, o = self.spec, self.options
         torch.set_num_threads(o["threads"] or run_threads())
-        model = GPModel(sparse_threshold=self.preset.sparse_threshold, num_pseudo=self.preset.sparse_threshold,
+        device = self.device
+        model = GPModel(device=device, sparse_threshold=self.preset.sparse_threshold, num_pseudo=self.preset.sparse_threshold,
                         max_evals_full=o["gp_max_evals"], max_evals_fitc=o["gp_fitc_evals"])
         controller = initial_controller(spec, self.preset, self.layout, o["squash"], torch.Generator().manual_seed(self.seed))
+        controller.to(device)
         resumed = self._resume_state
         if resumed is None:
             scale = self.preset.random_scale
@@ -120,14 +127,14 @@ class McPilco(Learner):
                 interaction.rollout(explore)
             hyperparameters, trial = None, 0
         else:  # continue right after the hand-over of trial `trial`
-            controller.load_state_dict(resumed["controller"])
+            controller.load_state_dict(resumed["controller"])  # copied onto the controller's device
             hyperparameters, trial = GPHyperparameters.from_dict(resumed["hyperparameters"]), resumed["trial"]
-        cost = CostMoments(spec.cost, self.cost_width)
-        init_mean = torch.as_tensor(np.asarray(spec.init_mean, dtype=np.float64))
-        init_cov = torch.as_tensor(np.asarray(spec.init_cov, dtype=np.float64))
+        cost = CostMoments(spec.cost, self.cost_width, device)
+        init_mean = torch.as_tensor(np.asarray(spec.init_mean, dtype=np.float64), device=device)
+        init_cov = torch.as_tensor(np.asarray(spec.init_cov, dtype=np.float64), device=device)
         while True:
             if trial > 0:  # apply the policy handed over last for one trial, record the data
-                interaction.rollout(PilcoPolicy(controller, self.layout))
+                interaction.rollout(PilcoPolicy(copy.deepcopy(controller).cpu(), self.layout))
             trial += 1
             x, y = transitions(interaction.episodes, self.layout)
             fit = model.fit(x, y, warm_start=hyperparameters, seed=self.seed + trial)
@@ -149,9 +156,9 @@ class McPilco(Learner):
             }
             if not math.isfinite(search.J_after):
                 self.metrics["policy_search_failed"] = 1.0
-            self._state = {"controller": copy.deepcopy(controller.state_dict()), "hyperparameters": hyperparameters.as_dict(),
-                           "trial": trial}
-            yield PilcoPolicy(copy.deepcopy(controller), self.layout)
+            self._state = {"controller": {k: v.detach().cpu().clone() for k, v in controller.state_dict().items()},
+                           "hyperparameters": hyperparameters.to("cpu").as_dict(), "trial": trial}
+            yield PilcoPolicy(copy.deepcopy(controller).cpu(), self.layout)
 
     def state_dict(self) -> dict[str, Any]:
         """Controller parameters, GP hyperparameters (warm start, as plain tensors) and the trial; every

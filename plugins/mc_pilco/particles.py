@@ -51,7 +51,7 @@ def policy_actions(controller: torch.nn.Module, inputs: torch.Tensor, dropout: f
     if isinstance(base, RBFController) and dropout > 0.0:
         post = base.posterior()
         k = se_ard(inputs, post.inputs, post.log_ell, post.log_alpha)  # (F, N, n_c)
-        keep = torch.rand(k.shape, generator=generator, dtype=k.dtype) >= dropout
+        keep = (torch.rand(k.shape, generator=generator, dtype=k.dtype, device="cpu") >= dropout).to(k.device)
         z = torch.einsum("anm,am->na", k * keep / (1.0 - dropout), post.beta)
     else:
         z = base(inputs)
@@ -89,17 +89,21 @@ class ParticleObjective:
 
     def rollout(self, generator: torch.Generator, dropout: float = 0.0) -> tuple[torch.Tensor, torch.Tensor]:
         """Sampled states ``(H+1, N, D)`` and the per-step mean cost ``(H,)`` of ``x_1..x_H``, both
-        differentiable wrt the controller's parameters; ``generator`` draws the initial states, the
-        model's noise and the dropout masks."""
-        d = self.init_mean.shape[0]
-        x = self.init_mean + torch.randn(self.particles, d, generator=generator, dtype=torch.float64) @ self._root.T
+        differentiable wrt the controller's parameters; ``generator`` (a CPU generator) draws the
+        initial states, the model's noise and the dropout masks. The objective computes where its
+        tensors are (``init_mean``'s device: the posterior, controller and cost must be there too); the
+        random numbers are drawn on the CPU and copied, so a GPU gets the same ones as the CPU."""
+        d, device = self.init_mean.shape[0], self.init_mean.device
+        draw = torch.randn(self.particles, d, generator=generator, dtype=torch.float64, device="cpu").to(device)
+        x = self.init_mean + draw @ self._root.T
         layout = self.layout
+        policy_index, model_index = layout.on("policy_index", device), layout.on("model_index", device)
         states, costs = [x], []
         for _ in range(self.horizon):
             a = layout.augment(x)
-            u = policy_actions(self.controller, a[:, layout.policy_index], dropout, generator)
-            mean, var = predict_latent(self.posterior, torch.cat([a[:, layout.model_index], u], dim=1))
-            eps = torch.randn(x.shape, generator=generator, dtype=torch.float64)
+            u = policy_actions(self.controller, a[:, policy_index], dropout, generator)
+            mean, var = predict_latent(self.posterior, torch.cat([a[:, model_index], u], dim=1))
+            eps = torch.randn(x.shape, generator=generator, dtype=torch.float64, device="cpu").to(device)
             x = x + mean + var.clamp_min(VAR_FLOOR).sqrt() * eps
             states.append(x)
             costs.append(self.cost.sample(x).mean())

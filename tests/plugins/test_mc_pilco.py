@@ -141,3 +141,64 @@ def test_planning_basis_limits_the_points_the_particles_go_through() -> None:
     assert [v for _, v in full.metrics["planning_basis"]] == [10.0, 20.0]
     assert [v for _, v in reduced.metrics["planning_basis"]] == [8.0, 8.0]
     assert full.metrics["J_after"] != reduced.metrics["J_after"]
+
+
+class _DefaultDevice:
+    def __init__(self, device: str) -> None:
+        self.device = device
+
+    def __enter__(self):
+        torch.set_default_device(self.device)
+
+    def __exit__(self, *exc):
+        torch.set_default_device(None)
+
+
+@pytest.mark.parametrize("dropout", [0.0, 0.25])
+def test_particles_create_no_tensor_on_the_default_device(dropout) -> None:
+    """With torch's default device set to ``meta`` (holds no data), a tensor created without an explicit
+    device lands there and the first operation that mixes it with the real ones fails: a pass means
+    nothing in the particle rollout (random numbers included) would be left off a GPU the model lives on."""
+    obj = _particles(_objective("rbf-two-controls"), 30)
+    J0 = obj.value(torch.Generator().manual_seed(4), dropout)
+    with _DefaultDevice("meta"):
+        J1 = obj.value(torch.Generator().manual_seed(4), dropout)
+    assert J1.device.type == "cpu" and float(J1.detach()) == float(J0.detach())
+
+
+def test_mc_pilco_refuses_cuda_without_a_gpu_in_one_line() -> None:
+    from harness.errors import OptionError
+    from harness.discovery import load_task
+
+    spec = load_task("cartpole")().spec
+    assert McPilco(spec, {"device": "cpu"}).device.type == "cpu"
+    if not torch.cuda.is_available():
+        with pytest.raises(OptionError, match=r"device=cuda: torch sees no CUDA GPU here"):
+            McPilco(spec, {"device": "cuda"})
+
+
+@pytest.mark.skipif(not torch.cuda.is_available(), reason="no CUDA device here: the CUDA path is not exercised")
+@pytest.mark.parametrize("dropout", [0.0, 0.25])
+def test_particles_on_cuda_equal_the_cpu(dropout) -> None:
+    """Same random numbers (drawn on the CPU) on both devices: J_hat and its gradient agree to rounding."""
+    import copy
+
+    cpu = _particles(_objective("rbf-two-controls"), 50)
+    gpu = dataclasses.replace(cpu, controller=copy.deepcopy(cpu.controller).cuda(), posterior=cpu.posterior.to("cuda"),
+                              cost=type(cpu.cost)(cpu.cost.cost, cpu.cost.width, "cuda"), init_mean=cpu.init_mean.cuda(),
+                              init_cov=cpu.init_cov.cuda())
+    values = []
+    for obj in (cpu, gpu):
+        J = obj.value(torch.Generator().manual_seed(7), dropout)
+        grads = torch.autograd.grad(J, [p for p in obj.controller.parameters() if p.requires_grad])
+        values.append((float(J), torch.cat([g.reshape(-1) for g in grads]).cpu()))
+    (J_c, g_c), (J_g, g_g) = values
+    assert abs(J_g - J_c) <= 1e-10 * abs(J_c) and float((g_g - g_c).norm()) <= 1e-7 * float(g_c.norm())
+
+
+@pytest.mark.skipif(not torch.cuda.is_available(), reason="no CUDA device here: the CUDA path is not exercised")
+def test_mc_pilco_runs_on_cuda() -> None:
+    options = {"num_centres": "5", "max_steps": "20", "particles": "20", "gp_max_evals": "30", "device": "cuda"}
+    result = run(RunConfig("mc-pilco", "cartpole", seed=0, learner_options=options, task_options={"horizon": 15}, max_trials=2,
+                           eval_episodes=2))
+    assert result.trials == 2
