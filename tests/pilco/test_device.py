@@ -20,22 +20,11 @@ from plugins.pilco.gp import GPModel
 from plugins.pilco.learner import resolve_device
 from plugins.pilco.moments import MomentMatchingGP
 from plugins.pilco.objective import PolicyObjective
+from tests.devices import CUDA, default_device
 from tests.pilco.test_fused_step import _objective
 
 torch.set_num_threads(1)
-CUDA = pytest.mark.skipif(not torch.cuda.is_available(), reason="no CUDA device here: the CUDA path is not exercised")
 CASES = ["rbf-two-controls", "linear-sin", "no-angles-rbf-policy-noise", "two-angles-linear", "rbf-fitc-mean-only"]
-
-
-class _DefaultDevice:
-    def __init__(self, device: str) -> None:
-        self.device = device
-
-    def __enter__(self):
-        torch.set_default_device(self.device)
-
-    def __exit__(self, *exc):
-        torch.set_default_device(None)
 
 
 @pytest.mark.parametrize("case", CASES)
@@ -45,7 +34,7 @@ def test_objective_creates_no_tensor_on_the_default_device(case, kernel) -> None
     obj.dynamics = MomentMatchingGP(obj.posterior, kernel=kernel)
     theta = obj.get_flat()
     J0, g0 = obj(theta)
-    with _DefaultDevice("meta"):
+    with default_device("meta"):
         J1, g1 = obj(theta)
     assert J1 == J0 and np.array_equal(g1, g0)
 
@@ -57,7 +46,7 @@ def test_gp_training_creates_no_tensor_on_the_default_device(sparse) -> None:
     y = np.sin(x[:, :2]) + 0.01 * rng.normal(size=(60, 2))
     settings = dict(sparse_threshold=40 if sparse else 300, num_pseudo=20, max_evals_full=20, max_evals_fitc=10)
     reference = GPModel(**settings).fit(x, y, seed=1)
-    with _DefaultDevice("meta"):
+    with default_device("meta"):
         model = GPModel(**settings, device="cpu")
         report = model.fit(x, y, seed=1)
         mean, var = model.predict(x[:5])

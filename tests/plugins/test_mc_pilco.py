@@ -21,6 +21,7 @@ from plugins.mc_pilco.learner import McPilco
 from plugins.mc_pilco.optimise import optimise_particles
 from plugins.mc_pilco.particles import ParticleObjective, policy_actions
 from plugins.pilco.objective import PolicyObjective
+from tests.devices import CUDA, default_device
 from tests.harness.trackers import InterruptAt
 from tests.pilco.test_fused_step import _objective
 
@@ -143,17 +144,6 @@ def test_planning_basis_limits_the_points_the_particles_go_through() -> None:
     assert full.metrics["J_after"] != reduced.metrics["J_after"]
 
 
-class _DefaultDevice:
-    def __init__(self, device: str) -> None:
-        self.device = device
-
-    def __enter__(self):
-        torch.set_default_device(self.device)
-
-    def __exit__(self, *exc):
-        torch.set_default_device(None)
-
-
 @pytest.mark.parametrize("dropout", [0.0, 0.25])
 def test_particles_create_no_tensor_on_the_default_device(dropout) -> None:
     """With torch's default device set to ``meta`` (holds no data), a tensor created without an explicit
@@ -161,7 +151,7 @@ def test_particles_create_no_tensor_on_the_default_device(dropout) -> None:
     nothing in the particle rollout (random numbers included) would be left off a GPU the model lives on."""
     obj = _particles(_objective("rbf-two-controls"), 30)
     J0 = obj.value(torch.Generator().manual_seed(4), dropout)
-    with _DefaultDevice("meta"):
+    with default_device("meta"):
         J1 = obj.value(torch.Generator().manual_seed(4), dropout)
     assert J1.device.type == "cpu" and float(J1.detach()) == float(J0.detach())
 
@@ -177,7 +167,7 @@ def test_mc_pilco_refuses_cuda_without_a_gpu_in_one_line() -> None:
             McPilco(spec, {"device": "cuda"})
 
 
-@pytest.mark.skipif(not torch.cuda.is_available(), reason="no CUDA device here: the CUDA path is not exercised")
+@CUDA
 @pytest.mark.parametrize("dropout", [0.0, 0.25])
 def test_particles_on_cuda_equal_the_cpu(dropout) -> None:
     """Same random numbers (drawn on the CPU) on both devices: J_hat and its gradient agree to rounding."""
@@ -196,7 +186,7 @@ def test_particles_on_cuda_equal_the_cpu(dropout) -> None:
     assert abs(J_g - J_c) <= 1e-10 * abs(J_c) and float((g_g - g_c).norm()) <= 1e-7 * float(g_c.norm())
 
 
-@pytest.mark.skipif(not torch.cuda.is_available(), reason="no CUDA device here: the CUDA path is not exercised")
+@CUDA
 def test_mc_pilco_runs_on_cuda() -> None:
     options = {"num_centres": "5", "max_steps": "20", "particles": "20", "gp_max_evals": "30", "device": "cuda"}
     result = run(RunConfig("mc-pilco", "cartpole", seed=0, learner_options=options, task_options={"horizon": 15}, max_trials=2,
