@@ -28,6 +28,7 @@ import json
 import math
 import shutil
 import tempfile
+import warnings
 from collections.abc import Iterator
 from dataclasses import asdict, replace
 from pathlib import Path
@@ -257,6 +258,7 @@ class Pilco(Learner):
                         refresh_pseudo=o["gp_refresh_pseudo"])
         controller = self._new_controller(torch.Generator().manual_seed(self.seed))
         resumed = self._resume_state
+        graph_warned = False
         try:
             if resumed is None:
                 scale = self.preset.random_scale
@@ -308,6 +310,12 @@ class Pilco(Learner):
                     self.metrics.update(fresh_start=float(fresh is not None), fresh_start_kept=float(bool(fresh and fresh["kept"])),
                                         J_fresh_start=fresh["J"] if fresh else math.nan)
                 last_J = search.J_after if search is not None else last_J
+                if objective.cuda_graph:  # on a GPU: was J + dJ replayed as a CUDA graph (1) or launched op by op (0)?
+                    self.metrics["cuda_graph"] = float(objective.graph_error is None)
+                    if objective.graph_error is not None and not graph_warned:
+                        graph_warned = True
+                        warnings.warn(f"pilco: J + dJ could not be captured as a CUDA graph ({objective.graph_error}); every "
+                                      "evaluation launches its operations one by one (slower; metric cuda_graph = 0)", stacklevel=1)
                 self.metrics["planning_horizon"] = float(self.horizon)
                 self.metrics["planning_basis"] = float(posterior.inputs.shape[0])
                 if sampled is not None:

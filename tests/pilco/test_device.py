@@ -188,3 +188,4 @@ def test_pilco_runs_on_cuda() -> None:
     result = run(RunConfig("pilco", "cartpole", seed=0, learner_options=options, task_options={"horizon": 15}, max_trials=2,
                            eval_episodes=2))
     assert result.trials == 2
+    assert [h["cuda_graph"] for h in result.history] == [1.0, 1.0]  # J + dJ replayed as a CUDA graph in both searches
