@@ -36,7 +36,6 @@ VIEWS = {"slice", "unsqueeze", "numpy_T", "select", "mT", "reshape", "diagonal",
 
 def count(task: str, options: dict[str, str], n: int, horizon: int) -> Counter:
     """Non-view aten operations of one J + dJ per region (``dynamics GP``, ``policy GP``, ``glue``)."""
-    import torch
     from torch.utils._python_dispatch import TorchDispatchMode
 
     import plugins.pilco.moments as moments
