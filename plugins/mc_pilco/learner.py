@@ -21,7 +21,6 @@ as the search stalls, at most 1500 steps per trial (cart-pole: 2000-4000).
 
 from __future__ import annotations
 
-import copy
 import math
 from collections.abc import Iterator
 from typing import Any
@@ -109,7 +108,7 @@ class McPilco(Learner):
         from plugins.mc_pilco.particles import ParticleObjective
         from plugins.pilco.cost import CostMoments
         from plugins.pilco.gp import GPHyperparameters, GPModel
-        from plugins.pilco.policy import PilcoPolicy, initial_controller, transitions
+        from plugins.pilco.policy import PilcoPolicy, cpu_state_dict, initial_controller, transitions
         from plugins.random_learner import UniformRandomPolicy
 
         spec, o = self.spec, self.options
@@ -134,7 +133,7 @@ class McPilco(Learner):
         init_cov = torch.as_tensor(np.asarray(spec.init_cov, dtype=np.float64), device=device)
         while True:
             if trial > 0:  # apply the policy handed over last for one trial, record the data
-                interaction.rollout(PilcoPolicy(copy.deepcopy(controller).cpu(), self.layout))
+                interaction.rollout(PilcoPolicy.snapshot(controller, self.layout))
             trial += 1
             x, y = transitions(interaction.episodes, self.layout)
             fit = model.fit(x, y, warm_start=hyperparameters, seed=self.seed + trial)
@@ -156,9 +155,9 @@ class McPilco(Learner):
             }
             if not math.isfinite(search.J_after):
                 self.metrics["policy_search_failed"] = 1.0
-            self._state = {"controller": {k: v.detach().cpu().clone() for k, v in controller.state_dict().items()},
+            self._state = {"controller": cpu_state_dict(controller),
                            "hyperparameters": hyperparameters.to("cpu").as_dict(), "trial": trial}
-            yield PilcoPolicy(copy.deepcopy(controller).cpu(), self.layout)
+            yield PilcoPolicy.snapshot(controller, self.layout)
 
     def state_dict(self) -> dict[str, Any]:
         """Controller parameters, GP hyperparameters (warm start, as plain tensors) and the trial; every

@@ -23,7 +23,6 @@ objective, search, :mod:`plugins.pilco.policy`) are imported where they run, so 
 
 from __future__ import annotations
 
-import copy
 import json
 import math
 import shutil
@@ -244,7 +243,7 @@ class Pilco(Learner):
 
         from plugins.pilco.gp import GPHyperparameters, GPModel
         from plugins.pilco.objective import PolicyObjective
-        from plugins.pilco.policy import PilcoPolicy, transitions
+        from plugins.pilco.policy import PilcoPolicy, cpu_state_dict, transitions
         from plugins.pilco.sampling import sampled_costs
         from plugins.random_learner import UniformRandomPolicy
 
@@ -275,7 +274,7 @@ class Pilco(Learner):
                 last_J = resumed.get("J_after")
             while True:
                 if trial > 0:  # apply the policy handed over last for one trial, record the data
-                    episode = interaction.rollout(PilcoPolicy(copy.deepcopy(controller).cpu(), self.layout))
+                    episode = interaction.rollout(PilcoPolicy.snapshot(controller, self.layout))
                     if o["plots"] and predicted is not None:
                         self.artifacts.append(self._plot_prediction(predicted, sampled, episode, workdir / f"prediction_trial{trial:03d}.png", trial))
                 trial += 1
@@ -325,7 +324,7 @@ class Pilco(Learner):
                     self.artifacts.append(self._save_settings(workdir))
                 self.horizon = next_planning_horizon(self.horizon, spec.horizon, search, o["grow_horizon_below"])
                 self._state = {
-                    "controller": {k: v.detach().cpu().clone() for k, v in controller.state_dict().items()},
+                    "controller": cpu_state_dict(controller),
                     "hyperparameters": hyperparameters.to("cpu").as_dict(),
                     "trial": trial,
                     "predicted": predicted,
@@ -333,7 +332,7 @@ class Pilco(Learner):
                     "planning_horizon": self.horizon,
                     "J_after": last_J,
                 }
-                yield PilcoPolicy(copy.deepcopy(controller).cpu(), self.layout)
+                yield PilcoPolicy.snapshot(controller, self.layout)
         finally:
             shutil.rmtree(workdir, ignore_errors=True)
 

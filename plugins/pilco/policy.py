@@ -12,6 +12,7 @@ Shared by every learner on PILCO's library (``pilco``, ``pilco-mean``, ``mc-pilc
 
 from __future__ import annotations
 
+import copy
 from dataclasses import asdict
 from typing import Any
 
@@ -67,6 +68,17 @@ class PilcoPolicy:
 
     def __call__(self, observation: np.ndarray) -> np.ndarray:
         return act(observation, self.controller, self.layout)
+
+    @classmethod
+    def snapshot(cls, controller: torch.nn.Module, layout: StateLayout) -> PilcoPolicy:
+        """A policy acting with a copy of ``controller`` on the CPU, where the system is stepped (the
+        controller may live on a GPU); later changes to ``controller`` do not reach it."""
+        return cls(copy.deepcopy(controller).cpu(), layout)
+
+
+def cpu_state_dict(module: torch.nn.Module) -> dict[str, torch.Tensor]:
+    """Copies of ``module``'s ``state_dict`` tensors on the CPU (a learner's saved state)."""
+    return {k: v.detach().cpu().clone() for k, v in module.state_dict().items()}
 
 
 def pilco_policy_state(policy: Policy) -> dict[str, Any]:
