@@ -25,3 +25,12 @@ def default_device(device: str) -> Iterator[None]:
         yield
     finally:
         torch.set_default_device(None)
+
+
+def run_on_cuda(learner: str, options: dict[str, str]):
+    """A two-trial run of ``learner`` on a short cart-pole (15 steps, 2 evaluation episodes) with
+    ``device=cuda`` added to its ``options``; returns its :class:`~harness.runner.RunResult`."""
+    from harness.runner import RunConfig, run
+
+    return run(RunConfig(learner, "cartpole", seed=0, learner_options={**options, "device": "cuda"},
+                         task_options={"horizon": 15}, max_trials=2, eval_episodes=2))

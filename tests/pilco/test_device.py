@@ -20,7 +20,7 @@ from plugins.pilco.gp import GPModel
 from plugins.pilco.learner import resolve_device
 from plugins.pilco.moments import MomentMatchingGP
 from plugins.pilco.objective import PolicyObjective
-from tests.devices import CUDA, default_device
+from tests.devices import CUDA, default_device, run_on_cuda
 from tests.pilco.test_fused_step import _objective
 
 torch.set_num_threads(1)
@@ -182,10 +182,6 @@ def test_gp_training_on_cuda_matches_the_cpu() -> None:
 
 @CUDA
 def test_pilco_runs_on_cuda() -> None:
-    from harness.runner import RunConfig, run
-
-    options = {"num_centres": "5", "policy_max_evaluations": "10", "gp_max_evals": "30", "plots": "false", "device": "cuda"}
-    result = run(RunConfig("pilco", "cartpole", seed=0, learner_options=options, task_options={"horizon": 15}, max_trials=2,
-                           eval_episodes=2))
+    result = run_on_cuda("pilco", {"num_centres": "5", "policy_max_evaluations": "10", "gp_max_evals": "30", "plots": "false"})
     assert result.trials == 2
     assert [h["cuda_graph"] for h in result.history] == [1.0, 1.0]  # J + dJ replayed as a CUDA graph in both searches

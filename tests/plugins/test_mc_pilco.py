@@ -21,7 +21,7 @@ from plugins.mc_pilco.learner import McPilco
 from plugins.mc_pilco.optimise import optimise_particles
 from plugins.mc_pilco.particles import ParticleObjective, policy_actions
 from plugins.pilco.objective import PolicyObjective
-from tests.devices import CUDA, default_device
+from tests.devices import CUDA, default_device, run_on_cuda
 from tests.harness.trackers import InterruptAt
 from tests.pilco.test_fused_step import _objective
 
@@ -188,7 +188,5 @@ def test_particles_on_cuda_equal_the_cpu(dropout) -> None:
 
 @CUDA
 def test_mc_pilco_runs_on_cuda() -> None:
-    options = {"num_centres": "5", "max_steps": "20", "particles": "20", "gp_max_evals": "30", "device": "cuda"}
-    result = run(RunConfig("mc-pilco", "cartpole", seed=0, learner_options=options, task_options={"horizon": 15}, max_trials=2,
-                           eval_episodes=2))
+    result = run_on_cuda("mc-pilco", {"num_centres": "5", "max_steps": "20", "particles": "20", "gp_max_evals": "30"})
     assert result.trials == 2
