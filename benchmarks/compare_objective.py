@@ -76,7 +76,7 @@ if threads > 1:  # as the learner does: the compiled kernel runs its own threads
     from plugins.pilco.moments import MomentMatchingGP
     if "threads" in inspect.signature(MomentMatchingGP).parameters:
         obj.dynamics = MomentMatchingGP(obj.posterior, threads=threads)
-        torch.set_num_threads(1 if obj.dynamics.kernel == "numba" else threads)
+        torch.set_num_threads(1 if obj.dynamics.kernel in ("numba", "fused") else threads)
     else:
         torch.set_num_threads(threads)
 theta = obj.get_flat()

@@ -14,12 +14,16 @@ The torch reference (``moments._contract_forward`` / ``_contract_backward``) for
 ``inv_k * Q`` as ``n x n`` matrices and streams ``Q`` through five thin matrix products, two of
 them for constant columns whose gradient nobody reads. Here:
 
-* ``Q`` is still formed by torch, a block of pairs at a time (a batched product and ``exp``:
-  MKL and SLEEF form it faster than the compiled loops written for this module measured);
-* the forward sums read each block once while it is in cache (:func:`reduce_rows`);
-* the backward kernel (``kernels(d).backward``) reads ``Q`` once, two rows at a time, forms ``G``'s
-  rows on the fly and accumulates all four products and ``g_w_r`` in the same sweep; only the
-  columns that carry a gradient are computed, and ``G`` and ``inv_k * Q`` never exist.
+* ``Q`` is formed one of two ways (``inline``, the kernel names of :mod:`plugins.pilco.moments`):
+  by torch and NumPy, a block of pairs at a time (a batched product and NumPy's SIMD ``exp``;
+  kernel ``numba``), or inside the compiled loops, a row at a time, never stored (kernel
+  ``fused``: each row is the ``d + 2`` multiply-adds of its exponent and :func:`exp_inline`, a
+  vectorisable ``exp``, so ``Q`` never goes through memory and no product is streamed twice);
+* the forward sums read each block once while it is in cache (:func:`reduce_rows`), or take each
+  row as it is formed (``kernels(d).forward_q``);
+* the backward kernel (``kernels(d).backward``, ``backward_q``) reads ``Q`` once, two rows at a time,
+  forms ``G``'s rows on the fly and accumulates all four products and ``g_w_r`` in the same sweep;
+  only the columns that carry a gradient are computed, and ``G`` and ``inv_k * Q`` never exist.
 
 The backward kernel is generated per input dimension ``d``: its inner loop runs over ``j``
 (contiguous, vectorised by LLVM) with ``2 d`` multiply-add accumulators in registers, which needs
@@ -41,6 +45,7 @@ from __future__ import annotations
 
 import hashlib
 import importlib.util
+import inspect
 import os
 import sys
 import threading
@@ -50,10 +55,11 @@ from types import ModuleType
 
 import numpy as np
 import torch
-from numba import njit
+from numba import njit, types
 from numba.core.compiler import CompilerBase, DefaultPassBuilder
 from numba.core.compiler_machinery import FunctionPass, register_pass
 from numba.core.untyped_passes import TranslateByteCode
+from numba.extending import intrinsic
 
 
 #: fast-math flags of the kernels: reassociation (vectorised sums) and contraction (FMA); no
@@ -86,6 +92,65 @@ class NoAliasCompiler(CompilerBase):
         return [pm]
 
 
+@intrinsic
+def _bits_as_float(typingctx, bits):
+    """The float64 whose IEEE-754 bit pattern is the int64 ``bits`` (a free register move, vectorisable)."""
+    def codegen(context, builder, signature, args):
+        return builder.bitcast(args[0], context.get_value_type(types.float64))
+    return types.float64(types.int64), codegen
+
+
+@intrinsic
+def _float_as_bits(typingctx, x):
+    """The int64 bit pattern of the float64 ``x``."""
+    def codegen(context, builder, signature, args):
+        return builder.bitcast(args[0], context.get_value_type(types.int64))
+    return types.int64(types.float64), codegen
+
+
+_LOG2_E = 1.4426950408889634
+#: ln 2 in two parts (Cody-Waite): ``k ln2_hi`` is exact for ``|k| < 2^11``
+_LN2_HI = 6.93147180369123816490e-01
+_LN2_LO = 1.90821492927058770002e-10
+#: 1.5 * 2^52: adding it rounds a float of magnitude < 2^51 to an integer held in the low mantissa bits
+_ROUND = 6755399441055744.0
+
+
+@njit(fastmath={"contract"}, nogil=True, cache=True)
+def exp_inline(x: float) -> float:
+    """``exp(x)`` in straight-line arithmetic that LLVM vectorises inside the kernels' loops (a call to
+    libm's ``exp`` would keep them scalar; numba's pip wheels have no vector maths library).
+
+    ``x = k ln2 + r``, ``|r| <= ln2 / 2``; ``exp(r)`` by its Taylor polynomial of degree 12 (remainder
+    below 2e-16 relative), times ``2^k`` built from its bit pattern in two factors so that results down
+    to the smallest subnormal come out right. Within 2 ulp of NumPy's ``exp`` (tested), including
+    0 below -745.2, ``inf`` above 709.8 and NaN for NaN (``x`` is clamped to [-746, 710] first, which
+    keeps ``k`` in range). Compiled without reassociation, which would undo the rounding and the
+    two-part reduction.
+    """
+    y = min(max(x, -746.0), 710.0)
+    t = y * _LOG2_E + _ROUND
+    k = t - _ROUND
+    r = y - k * _LN2_HI
+    r = r - k * _LN2_LO
+    p = 1.0 / 479001600.0
+    p = p * r + 1.0 / 39916800.0
+    p = p * r + 1.0 / 3628800.0
+    p = p * r + 1.0 / 362880.0
+    p = p * r + 1.0 / 40320.0
+    p = p * r + 1.0 / 5040.0
+    p = p * r + 1.0 / 720.0
+    p = p * r + 1.0 / 120.0
+    p = p * r + 1.0 / 24.0
+    p = p * r + 1.0 / 6.0
+    p = p * r + 0.5
+    p = p * r + 1.0
+    p = p * r + 1.0
+    ki = _float_as_bits(t) - _float_as_bits(_ROUND)
+    k1 = ki >> 1
+    return p * _bits_as_float((k1 + 1023) << 52) * _bits_as_float((ki - k1 + 1023) << 52)
+
+
 @njit(fastmath=FASTMATH, nogil=True, cache=True, pipeline_class=NoAliasCompiler)
 def reduce_rows(Q, first, wl, wr, inv_k, quad, trace, q_wr):
     """The forward sums of pairs ``first .. first + len(Q) - 1`` (one read of their ``Q``).
@@ -116,23 +181,56 @@ def reduce_rows(Q, first, wl, wr, inv_k, quad, trace, q_wr):
 
 
 _HEADER = '''"""Generated by plugins/pilco/fused.py for input dimension d = {d}: do not edit."""
+# exp_inline's source: {exp_digest} (numba's cache of this file does not see changes to what it
+# imports; a new exp_inline changes this line, so the file's name, so the cache)
 from numba import njit
 
-from plugins.pilco.fused import NoAliasCompiler
+from plugins.pilco.fused import NoAliasCompiler, exp_inline
 
 FASTMATH = {fastmath}
 '''
 
+_FORWARD_Q = '''
+@njit(fastmath=FASTMATH, nogil=True, cache=True, pipeline_class=NoAliasCompiler)
+def forward_q(L, Rt, first, last, wl, wr, inv_k, quad, trace, q_wr):
+    \"\"\"reduce_rows for pairs first .. last - 1 with Q_p[i, j] = exp(L[p, i] . Rt[p, :, j]) formed
+    row by row inside the loop (L (P, n, {k}), Rt (P, {k}, n)); Q is never stored.\"\"\"
+    n = L.shape[1]
+    ntrace = inv_k.shape[0]
+    for p in range(first, last):
+        sq = 0.0
+        st = 0.0
+        for i in range(n):
+{load_l}
+            s = 0.0
+            t = 0.0
+            if p < ntrace:
+                for j in range(n):
+                    q = exp_inline({exponent})
+                    s += q * wr[p, j]
+                    t += q * inv_k[p, i, j]
+            else:
+                for j in range(n):
+                    q = exp_inline({exponent})
+                    s += q * wr[p, j]
+            q_wr[p, i] = s
+            sq += wl[p, i] * s
+            st += t
+        quad[p] = sq
+        if p < ntrace:
+            trace[p] = st
+'''
+
 _BACKWARD = '''
 @njit(fastmath=FASTMATH, nogil=True, cache=True, pipeline_class=NoAliasCompiler)
-def backward(Q, first, A, Bt, wl, wr, inv_k, g_quad, g_trace, need_wr, gA, gu, gBv, gwr):
-    \"\"\"Gradients of pairs first .. first + len(Q) - 1 through G = Q * (g_quad w_l w_r^T + g_trace inv_k),
-    two rows of Q at a time. Writes their gA (n, d), gu (n,), gBv (d + 1, n) = [gB^T; gv] and, when
-    need_wr, gwr (n,).\"\"\"
-    n = Q.shape[1]
+def {name}({source}, first, last, A, Bt, wl, wr, inv_k, g_quad, g_trace, need_wr, gA, gu, gBv, gwr):
+    \"\"\"Gradients of pairs first .. last - 1 through G = Q * (g_quad w_l w_r^T + g_trace inv_k),
+    two rows of Q at a time ({what}). Writes their gA (n, d), gu (n,), gBv (d + 1, n) = [gB^T; gv]
+    and, when need_wr, gwr (n,).\"\"\"
+    n = gA.shape[1]
     ntrace = inv_k.shape[0]
-    for pb in range(Q.shape[0]):
-        p = first + pb
+    for p in range(first, last):
+{pb}
         for c in range({d} + 1):
             for j in range(n):
                 gBv[p, c, j] = 0.0
@@ -149,18 +247,19 @@ def backward(Q, first, A, Bt, wl, wr, inv_k, g_quad, g_trace, need_wr, gA, gu, g
             t1 = gt if two else 0.0
 {load_a01}
 {zero_acc}
+{rows}
             su0 = 0.0
             su1 = 0.0
             if p < ntrace:
                 for j in range(n):
-                    g0 = Q[pb, i0, j] * (c0 * wr[p, j] + gt * inv_k[p, i0, j])
-                    g1 = Q[pb, i1, j] * (c1 * wr[p, j] + t1 * inv_k[p, i1, j])
+                    g0 = {q0} * (c0 * wr[p, j] + gt * inv_k[p, i0, j])
+                    g1 = {q1} * (c1 * wr[p, j] + t1 * inv_k[p, i1, j])
 {body}
             else:
                 for j in range(n):
                     w = wr[p, j]
-                    g0 = Q[pb, i0, j] * (c0 * w)
-                    g1 = Q[pb, i1, j] * (c1 * w)
+                    g0 = {q0} * (c0 * w)
+                    g1 = {q1} * (c1 * w)
 {body}
 {store_acc}
             gu[p, i0] = su0
@@ -170,7 +269,7 @@ def backward(Q, first, A, Bt, wl, wr, inv_k, g_quad, g_trace, need_wr, gA, gu, g
                 w0 = wl[p, i0]
                 w1 = wl[p, i1] if two else 0.0
                 for j in range(n):
-                    gwr[p, j] += Q[pb, i0, j] * w0 + Q[pb, i1, j] * w1
+                    gwr[p, j] += {q0} * w0 + {q1} * w1
         if need_wr:
             for j in range(n):
                 gwr[p, j] *= gq
@@ -178,13 +277,18 @@ def backward(Q, first, A, Bt, wl, wr, inv_k, g_quad, g_trace, need_wr, gA, gu, g
 
 
 def source(d: int) -> str:
-    """The kernels' Python source for input dimension ``d``."""
+    """The kernels' Python source for input dimension ``d``: ``forward_q``, ``backward`` (reads a
+    stored block ``Q`` holding pairs ``first .. last - 1``) and ``backward_q`` (forms two rows of ``Q``
+    at a time into the scratch rows ``q0, q1 (n,)`` from ``L, Rt``, as ``forward_q`` does)."""
     if d < 1:
         raise ValueError(f"input dimension must be >= 1, got {d}")
-    cs = range(d)
+    cs, ks = range(d), range(d + 2)
 
-    def lines(template: str, indent: int) -> str:
-        return "\n".join(" " * indent + template.format(c=c) for c in cs)
+    def lines(template: str, indent: int, over=cs) -> str:
+        return "\n".join(" " * indent + template.format(c=c) for c in over)
+
+    def exponent(row: str) -> str:
+        return " + ".join(f"l{row}{c} * Rt[p, {c}, j]" for c in ks)
 
     body = "\n".join(
         [" " * 20 + f"b{c} = Bt[p, {c}, j]" for c in cs]
@@ -193,12 +297,26 @@ def source(d: int) -> str:
         + [" " * 20 + f"gBv[p, {c}, j] += g0 * a0_{c} + g1 * a1_{c}" for c in cs]
         + [" " * 20 + "su0 += g0", " " * 20 + "su1 += g1", " " * 20 + f"gBv[p, {d}, j] += g0 + g1"]
     )
-    return _HEADER.format(d=d, fastmath="{" + ", ".join(repr(f) for f in sorted(FASTMATH)) + "}") + _BACKWARD.format(
-        d=d,
+    common = dict(
+        d=d, body=body,
         load_a01=lines("a0_{c} = A[p, i0, {c}]", 12) + "\n" + lines("a1_{c} = A[p, i1, {c}]", 12),
         zero_acc=lines("s0_{c} = 0.0", 12) + "\n" + lines("s1_{c} = 0.0", 12),
-        body=body,
         store_acc=lines("gA[p, i0, {c}] = s0_{c}", 12) + "\n" + " " * 12 + "if two:\n" + lines("gA[p, i1, {c}] = s1_{c}", 16),
+    )
+    rows = "\n".join([
+        lines("l0{c} = L[p, i0, {c}]", 12, ks), lines("l1{c} = L[p, i1, {c}]", 12, ks),
+        " " * 12 + "for j in range(n):",
+        " " * 16 + f"q0[j] = exp_inline({exponent('0')})",
+        " " * 16 + f"q1[j] = exp_inline({exponent('1')})",
+    ])
+    return (
+        _HEADER.format(d=d, fastmath="{" + ", ".join(repr(f) for f in sorted(FASTMATH)) + "}",
+                       exp_digest=hashlib.sha256(inspect.getsource(exp_inline.py_func).encode()).hexdigest()[:12])
+        + _FORWARD_Q.format(k=d + 2, load_l=lines("l{c} = L[p, i, {c}]", 12, ks), exponent=exponent(""))
+        + _BACKWARD.format(name="backward", source="Q", what="Q[p - first] read from a stored block", rows="", pb=" " * 8 + "pb = p - first",
+                           q0="Q[pb, i0, j]", q1="Q[pb, i1, j]", **common)
+        + _BACKWARD.format(name="backward_q", source="L, Rt, q0, q1", what="formed from L and Rt into q0, q1",
+                           rows=rows, pb="", q0="q0[j]", q1="q1[j]", **common)
     )
 
 
@@ -303,19 +421,30 @@ def exp_bilinear(left: torch.Tensor, right: torch.Tensor, out: torch.Tensor) -> 
     return out
 
 
-def forward(left, right, w_left, w_right, inv_k, workspace, out=None, threads: int = 1, block=1):
+def forward(left, right, w_left, w_right, inv_k, workspace, out=None, threads: int = 1, block=1,
+            inline: bool = False):
     """``quad (P,)``, ``trace (E',)``, ``Q w_right (P, n)``; ``Q`` into ``out`` (kept) if given.
 
     ``left, right (P, n, d + 2)`` with ``Q_p = exp(left_p right_p^T)``, formed ``block`` pairs at a
-    time (a number or a function ``(n, itemsize) -> pairs``) into ``out`` or the workspace's scratch."""
+    time (a number or a function ``(n, itemsize) -> pairs``) into ``out`` or the workspace's scratch;
+    ``inline``: formed row by row inside the compiled loop instead (``kernels(d).forward_q``; no
+    ``Q`` is stored, so ``out`` must be ``None``)."""
     p, n = left.shape[0], left.shape[1]
     e = inv_k.shape[0]
     quad, trace, q_wr = np.empty(p), np.empty(e), np.empty((p, n))
     wl, wr, ik = _numpy(w_left), _numpy(w_right), _numpy(inv_k)
     groups = pair_groups(p, e, threads)
     size = _block_size(block, n, left.element_size())
+    if inline:
+        if out is not None:
+            raise ValueError("inline forms Q without storing it: no Q can be kept (out must be None)")
+        kernel = kernels(left.shape[2] - 2).forward_q
+        L, Rt = _numpy(left.contiguous()), _numpy(right.mT.contiguous())
 
     def work(g: int, start: int, stop: int) -> None:
+        if inline:
+            kernel(L, Rt, start, stop, wl, wr, ik, quad, trace, q_wr)
+            return
         for s in range(start, stop, size):
             t = min(s + size, stop)
             Q = out[s:t] if out is not None else workspace.buffer(f"Q{g}", (t - s, n, n), left.dtype)
@@ -327,16 +456,17 @@ def forward(left, right, w_left, w_right, inv_k, workspace, out=None, threads: i
 
 
 def backward(left, right, w_left, w_right, inv_k, q_wr, g_quad, g_trace, workspace, needs, Q=None,
-             threads: int = 1, block=1):
+             threads: int = 1, block=1, inline: bool = False):
     """Gradients wrt ``(left, right, w_left, w_right, inv_k)`` as ``moments._contract_backward``
     returns them (``None`` where not needed; the constant columns of ``left``/``right`` get 0).
 
-    ``Q``: the forward pass's kept ``Q (P, n, n)``, or ``None`` to recompute it ``block`` pairs at a
-    time into the workspace's scratch."""
+    ``Q``: the forward pass's kept ``Q (P, n, n)``, or ``None`` to recompute it: ``block`` pairs at a
+    time into the workspace's scratch or, with ``inline``, two rows at a time inside the compiled loop
+    (``kernels(d).backward_q``)."""
     p, n, k = left.shape
     d = k - 2
     e = inv_k.shape[0] if g_trace is not None else 0
-    kernel = kernels(d).backward
+    module = kernels(d)
     A = np.ascontiguousarray(_numpy(left)[..., :d])  # numba's loops over strided arrays are ~3x slower
     Bt = _numpy(right[..., :d].transpose(1, 2).contiguous())
     wl, wr, ik = _numpy(w_left), _numpy(w_right), _numpy(inv_k[:e])
@@ -347,15 +477,21 @@ def backward(left, right, w_left, w_right, inv_k, q_wr, g_quad, g_trace, workspa
     groups = pair_groups(p, e, threads)
     size = _block_size(block, n, left.element_size())
 
+    if inline and Q is None:
+        L, Rt = _numpy(left.contiguous()), _numpy(right.mT.contiguous())
+
     def work(g: int, start: int, stop: int) -> None:
+        args = (A, Bt, wl, wr, ik, gq, gt, need_wr, gA, gu, gBv, gwr)
         if Q is not None:
-            kernel(_numpy(Q[start:stop]), start, A, Bt, wl, wr, ik, gq, gt, need_wr, gA, gu, gBv, gwr)
-            return
-        for s in range(start, stop, size):
-            t = min(s + size, stop)
-            Qb = workspace.buffer(f"Q{g}", (t - s, n, n), left.dtype)
-            exp_bilinear(left[s:t], right[s:t], Qb)
-            kernel(_numpy(Qb), s, A, Bt, wl, wr, ik, gq, gt, need_wr, gA, gu, gBv, gwr)
+            module.backward(_numpy(Q[start:stop]), start, stop, *args)
+        elif inline:
+            module.backward_q(L, Rt, np.empty(n), np.empty(n), start, stop, *args)
+        else:
+            for s in range(start, stop, size):
+                t = min(s + size, stop)
+                Qb = workspace.buffer(f"Q{g}", (t - s, n, n), left.dtype)
+                exp_bilinear(left[s:t], right[s:t], Qb)
+                module.backward(_numpy(Qb), s, t, *args)
 
     _run(groups, work)
     grad_left = torch.zeros(p, n, k, dtype=left.dtype)

@@ -154,8 +154,9 @@ class Pilco(Learner):
         Option("policy_max_evaluations", int, None, "J+dJ evaluations per policy search (default: task preset, 300; unicycle 150)", low=1),
         Option("threads", int, None, "CPU threads (default: the harness's choice, all cores for harness bench and 1 per "
                "cell in a sweep; harness.threads)", low=1, execution=True),
-        Option("kernel", str, "auto", "moment matching's Q contraction: numba (compiled backward pass, extra 'fast'), "
-               "torch (the reference) or auto (numba where installed)", choices=("auto", "numba", "torch"), execution=True),
+        Option("kernel", str, "auto", "moment matching's Q contraction: fused (compiled passes forming Q inside their "
+               "loops, extra 'fast'), numba (compiled backward pass, Q by BLAS and NumPy), torch (the reference) or auto "
+               "(fused where numba is installed)", choices=("auto", "fused", "numba", "torch"), execution=True),
         Option("device", str, "cpu", "where the GP is trained and J computed: cpu, cuda (a GPU; kernel torch) or auto "
                "(cuda where torch sees one)", choices=("cpu", "cuda", "auto"), execution=True),
         Option("cuda_graph", bool, True, "on a GPU, capture J + dJ once per policy search as a CUDA graph and replay it "
@@ -338,10 +339,11 @@ class Pilco(Learner):
 
     def _search(self, objective: PolicyObjective, kernel: str, threads: int):
         """One policy search from the controller's current parameters within the preset's budgets."""
+        from plugins.pilco.moments import COMPILED_KERNELS
         from plugins.pilco.policy_search import optimise_policy
 
-        # the numba contraction runs its own threads; everything else in J is small
-        with torch_threads(1 if kernel == "numba" else threads):
+        # the compiled contraction runs its own threads; everything else in J is small
+        with torch_threads(1 if kernel in COMPILED_KERNELS else threads):
             return optimise_policy(objective, self.preset.policy_max_iterations, self.preset.policy_max_evaluations)
 
     def _fresh_start(self, objective: PolicyObjective, controller: SquashedController, search, trial: int, kernel: str,

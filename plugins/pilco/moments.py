@@ -38,12 +38,13 @@ Implementation notes (all float64, vectorised over outputs and basis points):
   ``(pairs, n, d)`` intermediates are kept) and tested equal to autograd through the same forward
   to 1e-11. Policy evaluation is dominated by the number of small operator calls, and autograd
   needs about three times as many.
-* Two implementations of the ``Q`` contraction (``kernel``, :func:`resolve_kernel`): ``torch``
-  (:func:`_contract_forward`, :func:`_contract_backward`: the reference, always available) and
+* Three implementations of the ``Q`` contraction (``kernel``, :func:`resolve_kernel`): ``torch``
+  (:func:`_contract_forward`, :func:`_contract_backward`: the reference, always available),
   ``numba`` (:mod:`plugins.pilco.fused`: the same forward, a compiled backward pass that reads
-  ``Q`` once instead of through five thin products; the default where numba is installed). Both
+  ``Q`` once instead of through five thin products) and ``fused`` (the same compiled passes with
+  ``Q`` formed row by row inside them, never stored; the default where numba is installed). They
   agree to round-off (J 1e-11, dJ 5e-8 relative on the double pendulum); ``threads`` > 1 runs
-  groups of output pairs in parallel with the numba kernel, with the same results.
+  groups of output pairs in parallel with the compiled kernels, with the same results.
 * A rollout whose gradient will be taken can keep each step's ``Q`` in a buffer of its own
   (:meth:`_Workspace.keep`, up to :data:`KEEP_Q_BYTES` per GP, default 0) so that the backward pass
   does not recompute it (one product and one ``exp`` per step); wherever a kept ``Q`` was
@@ -68,9 +69,13 @@ import torch
 from plugins.pilco.kernels import cho_inverse, cholesky_checked
 from plugins.pilco.posterior import GPPosterior
 
-#: implementations of the Q contraction: ``torch`` (the reference, always available) and ``numba``
-#: (:mod:`plugins.pilco.fused`: compiled backward pass, extra ``fast``)
-KERNELS = ("torch", "numba")
+#: implementations of the Q contraction: ``torch`` (the reference, always available), ``numba``
+#: (:mod:`plugins.pilco.fused`: compiled backward pass, ``Q`` formed by BLAS and NumPy) and ``fused``
+#: (the compiled passes forming ``Q`` inside their loops); the compiled ones need the extra ``fast``
+KERNELS = ("torch", "numba", "fused")
+
+#: the kernels that run compiled code on the CPU (their own threads; torch single-threaded inside)
+COMPILED_KERNELS = ("numba", "fused")
 
 
 def numba_available() -> bool:
@@ -83,18 +88,18 @@ KERNEL_ENV = "HARNESS_PILCO_KERNEL"
 
 
 def resolve_kernel(kernel: str | None, device: torch.device | str | None = None) -> str:
-    """``None``/``"auto"``: ``$HARNESS_PILCO_KERNEL`` if set, else ``numba`` where available (on the
-    CPU; ``torch`` on a GPU ``device``), else ``torch``; a named kernel is checked and returned.
-    Raises ``ValueError`` with the fix."""
+    """``None``/``"auto"``: ``$HARNESS_PILCO_KERNEL`` if set, else ``fused`` where numba is available
+    (on the CPU; ``torch`` on a GPU ``device``), else ``torch``; a named kernel is checked and
+    returned. Raises ``ValueError`` with the fix."""
     on_cpu = device is None or torch.device(device).type == "cpu"
     if kernel in (None, "auto"):
-        kernel = os.environ.get(KERNEL_ENV) or ("numba" if numba_available() and on_cpu else "torch")
-    if kernel == "numba" and not on_cpu:
-        raise ValueError(f"kernel 'numba' runs on the CPU, the model is on {device} (use kernel torch or auto)")
+        kernel = os.environ.get(KERNEL_ENV) or ("fused" if numba_available() and on_cpu else "torch")
+    if kernel in COMPILED_KERNELS and not on_cpu:
+        raise ValueError(f"kernel {kernel!r} runs on the CPU, the model is on {device} (use kernel torch or auto)")
     if kernel not in KERNELS:
         raise ValueError(f"unknown kernel {kernel!r}; expected auto or one of {KERNELS}")
-    if kernel == "numba" and not numba_available():
-        raise ValueError("kernel 'numba' needs numba (pip install '.[fast]') and HARNESS_NO_JIT unset")
+    if kernel in COMPILED_KERNELS and not numba_available():
+        raise ValueError(f"kernel {kernel!r} needs numba (pip install '.[fast]') and HARNESS_NO_JIT unset")
     return kernel
 
 
@@ -346,11 +351,14 @@ class MomentMatchingGP:
         device = posterior.beta.device
         self.kernel = resolve_kernel(kernel, device)
         self.threads = max(1, int(threads))
-        if self.kernel == "numba":
+        if self.kernel in COMPILED_KERNELS:
             from plugins.pilco import fused
 
-            self._contract_forward = functools.partial(fused.forward, threads=self.threads, block=_pair_block_size)
-            self._contract_backward = functools.partial(fused.backward, threads=self.threads, block=_pair_block_size)
+            inline = self.kernel == "fused"
+            self._contract_forward = functools.partial(fused.forward, threads=self.threads, block=_pair_block_size,
+                                                       inline=inline)
+            self._contract_backward = functools.partial(fused.backward, threads=self.threads, block=_pair_block_size,
+                                                        inline=inline)
         else:
             self._contract_forward, self._contract_backward = _contract_forward, _contract_backward
         self.posterior = posterior
@@ -455,7 +463,9 @@ class MomentMatchingGP:
             saved = None
         else:
             n = left.shape[1]
-            kept = None if slot is None else self.workspace.keep(slot, (p, n, n), left.dtype)
+            # the fused kernel stores no Q, so it has none to keep for the backward pass
+            keeps = slot is not None and self.kernel != "fused"
+            kept = self.workspace.keep(slot, (p, n, n), left.dtype) if keeps else None
             if kept is None:
                 quad, trace, q_wr = contract(left, right, self.beta_a, self.beta_b, inv_k, self.workspace)
             else:
@@ -550,7 +560,7 @@ class _MomentsFunction(torch.autograd.Function):
     @torch.autograd.function.once_differentiable
     def backward(ctx, gM, gV, gC):
         gp = ctx.gp
-        e, dtype = gp.num_outputs, gp.beta.dtype
+        e = gp.num_outputs
         gM = gp.beta.new_zeros(e) if gM is None else gM
         gV = gp.beta.new_zeros(e, e) if gV is None else gV
         gC = gp.beta.new_zeros(gp.input_dim, e) if gC is None else gC

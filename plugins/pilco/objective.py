@@ -40,7 +40,7 @@ class PolicyObjective:
             ``None`` (the policy sees the latent state, as in the reference code's last version);
             see :meth:`~plugins.pilco.propagate.StateLayout.policy_noise_cov`.
         kernel: the dynamics GP's contraction (:func:`~plugins.pilco.moments.resolve_kernel`:
-            ``None``/``"auto"``, ``"numba"``, ``"torch"``); ``threads``: threads it may use.
+            ``None``/``"auto"``, ``"fused"``, ``"numba"``, ``"torch"``); ``threads``: threads it may use.
         device: where J is computed (``None``: where the posterior is, normally the CPU; e.g.
             ``"cuda"``). The posterior, the distributions and the controller are moved there (the
             controller in place); theta goes in and dJ comes out as NumPy arrays on the host.

@@ -5,6 +5,9 @@ reads must agree to round-off (1e-12 relative), with and without the trace term,
 the ``w_right`` gradient, with a kept or a recomputed ``Q``, for odd and even ``n`` (the backward
 kernel takes rows two at a time) and for several input dimensions (one generated kernel each).
 Results must not depend on the number of threads (each pair is summed by one thread, in order).
+Every check runs for both ways of forming ``Q``: by BLAS and NumPy into a block (kernel ``numba``)
+and inside the compiled loops (``inline``, kernel ``fused``), whose ``exp`` is checked against
+NumPy's on its own.
 The whole objective's J and dJ with either kernel are compared in test_objective_kernels below.
 """
 
@@ -45,13 +48,37 @@ def _rel(a, b) -> float:
     return float(torch.linalg.norm(a - b) / torch.linalg.norm(b))
 
 
+def test_inline_exp_is_numpys_to_two_ulp() -> None:
+    """:func:`fused.exp_inline` in a loop LLVM vectorises, against NumPy's ``exp``: over the doubles'
+    whole range (subnormal results included), at the ends (0, inf) and for NaN."""
+    from numba import njit
+
+    @njit(fastmath=fused.FASTMATH)
+    def exp_all(x, out):
+        for i in range(x.shape[0]):
+            out[i] = fused.exp_inline(x[i])
+
+    x = np.concatenate([np.random.default_rng(0).uniform(-745.0, 709.7, 200_000), np.linspace(-1.0, 1.0, 2001),
+                        [-746.0, -745.2, -745.1, -744.5, -720.0, -708.4, 0.0, 709.7, 709.8, 710.0, 1e4, np.inf, -np.inf]])
+    got, want = np.empty_like(x), np.exp(np.where(x < 709.79, x, np.inf))
+    exp_all(x, got)
+    finite = np.isfinite(want) & (want > 0)
+    ulp = np.abs(got[finite] - want[finite]) / np.spacing(want[finite])
+    assert ulp.max() <= 2.0
+    assert np.array_equal(got[~finite], want[~finite])
+    nan = np.full(9, np.nan)
+    exp_all(nan, nan)
+    assert np.isnan(nan).all()
+
+
 @pytest.mark.parametrize("num_outputs,n,d", [(1, 7, 1), (2, 8, 3), (3, 33, 9)])
 @pytest.mark.parametrize("traced", [True, False])
-def test_forward_matches_the_torch_reference(num_outputs, n, d, traced) -> None:
+@pytest.mark.parametrize("inline", [False, True])
+def test_forward_matches_the_torch_reference(num_outputs, n, d, traced, inline) -> None:
     left, right, wl, wr, inv_k, *_ = _contraction_inputs(num_outputs, n, d, seed=n + d)
     inv_k = inv_k if traced else inv_k[:0]
     ref = moments._contract_forward(left, right, wl, wr, inv_k, moments._Workspace())
-    got = fused.forward(left, right, wl, wr, inv_k, moments._Workspace())
+    got = fused.forward(left, right, wl, wr, inv_k, moments._Workspace(), inline=inline)
     for a, b in zip(got, ref):
         if b.numel():
             assert _rel(a, b) < 1e-13
@@ -60,8 +87,8 @@ def test_forward_matches_the_torch_reference(num_outputs, n, d, traced) -> None:
 
 @pytest.mark.parametrize("num_outputs,n,d", [(1, 7, 1), (2, 8, 3), (3, 33, 9), (4, 20, 13)])
 @pytest.mark.parametrize("traced", [True, False])
-@pytest.mark.parametrize("kept", [True, False])
-def test_backward_matches_the_torch_reference(num_outputs, n, d, traced, kept) -> None:
+@pytest.mark.parametrize("kept,inline", [(True, False), (False, False), (False, True)])
+def test_backward_matches_the_torch_reference(num_outputs, n, d, traced, kept, inline) -> None:
     """gA, gu, gB, gv (the columns of grad_left/right that moment matching reads), g_w_left, g_w_right."""
     left, right, wl, wr, inv_k, g_quad, g_trace = _contraction_inputs(num_outputs, n, d, seed=10 * n + d)
     if not traced:
@@ -70,7 +97,8 @@ def test_backward_matches_the_torch_reference(num_outputs, n, d, traced, kept) -
     q_wr = moments._contract_forward(left, right, wl, wr, inv_k, moments._Workspace())[2]
     needs = (True, True, True, True, False)
     ref = moments._contract_backward(left, right, wl, wr, inv_k, q_wr, g_quad, g_trace, moments._Workspace(), needs, Q=Q)
-    got = fused.backward(left, right, wl, wr, inv_k, q_wr, g_quad, g_trace, moments._Workspace(), needs, Q=Q)
+    got = fused.backward(left, right, wl, wr, inv_k, q_wr, g_quad, g_trace, moments._Workspace(), needs, Q=Q,
+                         inline=inline)
     used = {"left": [*range(d), d], "right": [*range(d), d + 1]}  # the constant columns' gradients are never read
     assert _rel(got[0][..., used["left"]], ref[0][..., used["left"]]) < 1e-12
     assert _rel(got[1][..., used["right"]], ref[1][..., used["right"]]) < 1e-12
@@ -78,25 +106,28 @@ def test_backward_matches_the_torch_reference(num_outputs, n, d, traced, kept) -
     assert got[4] is None
 
 
-def test_backward_gradient_of_inv_k_and_skipped_w_right() -> None:
+@pytest.mark.parametrize("inline", [False, True])
+def test_backward_gradient_of_inv_k_and_skipped_w_right(inline) -> None:
     """``g_inv_k = g_trace Q`` where asked for (posteriors with gradients); no ``g_w_right`` where not."""
     left, right, wl, wr, inv_k, g_quad, g_trace = _contraction_inputs(2, 9, 2, seed=3)
     q_wr = moments._contract_forward(left, right, wl, wr, inv_k, moments._Workspace())[2]
     needs = (True, True, False, False, True)
     ref = moments._contract_backward(left, right, wl, wr, inv_k, q_wr, g_quad, g_trace, moments._Workspace(), needs)
-    got = fused.backward(left, right, wl, wr, inv_k, q_wr, g_quad, g_trace, moments._Workspace(), needs)
+    got = fused.backward(left, right, wl, wr, inv_k, q_wr, g_quad, g_trace, moments._Workspace(), needs, inline=inline)
     assert got[2] is None and got[3] is None
     assert _rel(got[4], ref[4]) < 1e-13
 
 
 @pytest.mark.parametrize("threads", [2, 3, 8])
-def test_results_do_not_depend_on_the_number_of_threads(threads) -> None:
+@pytest.mark.parametrize("inline", [False, True])
+def test_results_do_not_depend_on_the_number_of_threads(threads, inline) -> None:
     left, right, wl, wr, inv_k, g_quad, g_trace = _contraction_inputs(4, 21, 5, seed=7)
     needs = (True, True, True, True, False)
 
     def both(t):
-        quad, trace, q_wr = fused.forward(left, right, wl, wr, inv_k, moments._Workspace(), threads=t)
-        grads = fused.backward(left, right, wl, wr, inv_k, q_wr, g_quad, g_trace, moments._Workspace(), needs, threads=t)
+        quad, trace, q_wr = fused.forward(left, right, wl, wr, inv_k, moments._Workspace(), threads=t, inline=inline)
+        grads = fused.backward(left, right, wl, wr, inv_k, q_wr, g_quad, g_trace, moments._Workspace(), needs, threads=t,
+                               inline=inline)
         return (quad, trace, q_wr, *grads[:4])
 
     for a, b in zip(both(1), both(threads)):
@@ -122,7 +153,8 @@ def test_generated_kernels_are_cached_per_dimension(tmp_path, monkeypatch) -> No
     assert fused.kernels(2) is module
     files = sorted(p.name for p in tmp_path.glob("qkernel_d2_*.py"))
     assert len(files) == 1 and module.__file__.endswith(files[0])
-    assert "s0_1 += g0 * b1" in (tmp_path / files[0]).read_text()
+    text = (tmp_path / files[0]).read_text()
+    assert "s0_1 += g0 * b1" in text and "def forward_q(" in text and "def backward_q(" in text
     left, right, wl, wr, inv_k, g_quad, g_trace = _contraction_inputs(1, 4, 2, seed=0)
     q_wr = torch.zeros(1, 4, dtype=DT)
     fused.backward(left, right, wl, wr, inv_k, q_wr, g_quad, g_trace, moments._Workspace(), (True,) * 4 + (False,))
@@ -133,8 +165,8 @@ def test_generated_kernels_are_cached_per_dimension(tmp_path, monkeypatch) -> No
 
 def test_kernel_names_resolve_or_fail_with_the_fix(monkeypatch) -> None:
     monkeypatch.delenv(moments.KERNEL_ENV, raising=False)
-    assert moments.resolve_kernel("auto") == "numba"
-    assert moments.resolve_kernel("torch") == "torch"
+    assert moments.resolve_kernel("auto") == "fused"
+    assert moments.resolve_kernel("torch") == "torch" and moments.resolve_kernel("numba") == "numba"
     monkeypatch.setenv(moments.KERNEL_ENV, "torch")
     assert moments.resolve_kernel(None) == "torch"
     with pytest.raises(ValueError, match="unknown kernel 'cuda'"):
@@ -142,6 +174,8 @@ def test_kernel_names_resolve_or_fail_with_the_fix(monkeypatch) -> None:
     monkeypatch.setenv("HARNESS_NO_JIT", "1")
     with pytest.raises(ValueError, match=r"pip install '\.\[fast\]'"):
         moments.resolve_kernel("numba")
+    with pytest.raises(ValueError, match=r"kernel 'fused' needs numba"):
+        moments.resolve_kernel("fused")
     monkeypatch.delenv(moments.KERNEL_ENV)
     assert moments.resolve_kernel("auto") == "torch"
 
@@ -163,7 +197,7 @@ def _task_objective(task: str, options: dict, n: int, horizon: int):
     ("cartpole", {}, 60, 30),
 ])
 def test_objective_is_the_same_with_either_kernel(task, options, n, horizon) -> None:
-    """The dynamics GP's contraction, torch or numba: J to 1e-10 relative or, where J's own change for
+    """The dynamics GP's contraction, torch, numba or fused: J to 1e-10 relative or, where J's own change for
     a 1-2 ulp move of theta is larger than that, to a fifth of that change (double pendulum here:
     1.04e-10 apart on an AVX-512 machine, against an own change of 4.5e-9); dJ to 2e-7 relative and to
     a fifth of its own 1-2 ulp change or 1e-12 (two implementations that round differently cannot
@@ -174,14 +208,15 @@ def test_objective_is_the_same_with_either_kernel(task, options, n, horizon) -> 
     obj = _task_objective(task, options, n, horizon)
     theta = obj.get_flat()
     results = {}
-    for kernel, threads in (("torch", 1), ("numba", 1), ("numba", 2)):
+    for kernel, threads in (("torch", 1), ("numba", 1), ("numba", 2), ("fused", 1), ("fused", 2)):
         obj.dynamics = MomentMatchingGP(obj.posterior, kernel=kernel, threads=threads)
         results[kernel, threads] = obj(theta)
-    (J_t, g_t), (J_n, g_n), (J_2, g_2) = results.values()
+    (J_t, g_t), *compiled = results.values()
     nudged = theta * (1 + np.finfo(float).eps * np.random.default_rng(0).choice([-2.0, -1.0, 1.0, 2.0], theta.shape))
     obj.dynamics = MomentMatchingGP(obj.posterior, kernel="torch")
     J_ulp, g_ulp = obj(nudged)
-    assert abs(J_n - J_t) <= max(1e-10 * abs(J_t), 0.2 * abs(J_ulp - J_t))
-    assert np.linalg.norm(g_n - g_t) <= max(2e-7 * np.linalg.norm(g_t), 0.1 * np.linalg.norm(g_ulp - g_t))
-    assert np.linalg.norm(g_n - g_t) <= max(0.2 * np.linalg.norm(g_ulp - g_t), 1e-12 * np.linalg.norm(g_t))
-    assert J_2 == J_n and np.array_equal(g_2, g_n)
+    for (J_n, g_n), (J_2, g_2) in (compiled[0:2], compiled[2:4]):
+        assert abs(J_n - J_t) <= max(1e-10 * abs(J_t), 0.2 * abs(J_ulp - J_t))
+        assert np.linalg.norm(g_n - g_t) <= max(2e-7 * np.linalg.norm(g_t), 0.1 * np.linalg.norm(g_ulp - g_t))
+        assert np.linalg.norm(g_n - g_t) <= max(0.2 * np.linalg.norm(g_ulp - g_t), 1e-12 * np.linalg.norm(g_t))
+        assert J_2 == J_n and np.array_equal(g_2, g_n)

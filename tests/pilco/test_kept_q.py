@@ -1,7 +1,7 @@
 """The backward pass's use of each step's kept ``Q`` (plugins.pilco.moments._Workspace.keep).
 
 A rollout whose gradient is taken keeps every step's ``Q`` so that the backward pass need not
-recompute it. The gradients must be exactly those of the recomputing path, also when the memory
+recompute it (kernels torch and numba; the fused kernel forms ``Q`` inside its loops and stores none). The gradients must be exactly those of the recomputing path, also when the memory
 cap lets only some steps keep theirs, and a kept ``Q`` that a later rollout overwrote must not be
 used (the stamp check).
 """
@@ -17,13 +17,20 @@ from tests.pilco.test_fused_step import _objective
 torch.set_num_threads(1)
 
 
+def _keeping(obj):
+    """``obj`` with a dynamics GP whose kernel stores ``Q`` (numba where installed, else torch)."""
+    kernel = "numba" if moments.numba_available() else "torch"
+    obj.dynamics = moments.MomentMatchingGP(obj.dynamics.posterior, kernel=kernel)
+    return obj
+
+
 def _value_and_grad(obj, keep_bytes: int):
     obj.dynamics.workspace = moments._Workspace(keep_bytes)
     return obj(obj.get_flat())
 
 
 def test_kept_q_gives_the_recomputed_gradient() -> None:
-    obj = _objective("rbf-two-controls")
+    obj = _keeping(_objective("rbf-two-controls"))
     J0, g0 = _value_and_grad(obj, 0)
     assert obj.dynamics.workspace.slots == []
     J1, g1 = _value_and_grad(obj, 1 << 40)
@@ -40,7 +47,7 @@ def test_kept_q_is_used(monkeypatch) -> None:
     """Not vacuous: with every step kept, the backward pass computes no ``Q`` of its own (a linear
     policy: the dynamics GP is the only moment matching); with none kept, once per step and block
     of output pairs."""
-    obj = _objective("linear-sin")
+    obj = _keeping(_objective("linear-sin"))
     calls: list[bool] = []  # per exp-bilinear (one block of pairs): written into a kept buffer?
     original = moments._exp_bilinear
 
