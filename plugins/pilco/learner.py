@@ -418,6 +418,7 @@ class Pilco(Learner):
                 J_before=search.J_before, J_after=search.J_after, policy_opt_seconds=search.seconds,
                 policy_evaluations=float(search.evaluations), line_searches=float(search.iterations),
                 policy_failed_evaluations=float(search.failed_evaluations), policy_search_restarts=float(search.restarts),
+                policy_search_status=float(search.status),
             )
         h = fit.hyperparameters
         for a in range(self.spec.state_dim):

@@ -404,16 +404,18 @@ class MomentMatchingGP:
         """
         if torch.is_grad_enabled() and (self.has_grad or m.requires_grad or S.requires_grad):
             return _MomentsFunction.apply(m, S, self, mean_only, *self.constants)
-        return self._forward(m, S, mean_only, contract=self._contract_forward)[0]
+        return self._forward(m, S, mean_only, contract=self._contract_forward, for_backward=False)[0]
 
     def forward(self, m: torch.Tensor, S: torch.Tensor, mean_only: bool = False, slot: int | None = None):
         """:meth:`predict` without autograd, for callers with their own backward pass.
 
         Returns ``((M, V, C), saved)``; ``saved`` (thin ``(P, n, d + 2)`` intermediates) is what
         :meth:`backward` needs. ``slot``: keep this prediction's ``Q (P, n, n)`` for the backward pass
-        in the workspace's buffer ``slot`` (one per time step of a rollout; see :class:`_Workspace`).
+        in the workspace's buffer ``slot`` (one per time step of a rollout; see :class:`_Workspace`);
+        given, it also tells the fused kernel that a backward pass follows, for which it saves the
+        gradients of the contraction's outputs (without, :meth:`backward` forms ``Q`` again).
         """
-        return self._forward(m, S, mean_only, contract=self._contract_forward, slot=slot)
+        return self._forward(m, S, mean_only, contract=self._contract_forward, slot=slot, for_backward=slot is not None)
 
     def backward(self, saved, gM: torch.Tensor, gV: torch.Tensor, gC: torch.Tensor, mean_only: bool, needs):
         """Gradients wrt ``(m, S, *self.constants)`` of a loss with gradients ``gM (E,)``,
@@ -421,10 +423,11 @@ class MomentMatchingGP:
         ``needs``: ``2 + len(self.constants)`` booleans; ``None`` is returned where ``False``."""
         return self._backward(saved, gM, gV, gC, mean_only, needs)
 
-    def _forward(self, m, S, mean_only, contract, slot: int | None = None):
+    def _forward(self, m, S, mean_only, contract, slot: int | None = None, for_backward: bool = True):
         """The moment-matching arithmetic; ``contract=None`` uses the autograd Function for the
         exp-contraction (autograd reference path), otherwise the plain forward (``Q`` kept in the
-        workspace's buffer ``slot`` if given and within its memory cap).
+        workspace's buffer ``slot`` if given and within its memory cap; with the fused kernel and
+        ``for_backward``, the contraction's gradients saved instead, :func:`plugins.pilco.fused.forward`).
         Returns ``((M, V, C), intermediates for _backward)``."""
         e, p = self.num_outputs, self.num_pairs
 
@@ -466,11 +469,15 @@ class MomentMatchingGP:
             # the fused kernel stores no Q, so it has none to keep for the backward pass
             keeps = slot is not None and self.kernel != "fused"
             kept = self.workspace.keep(slot, (p, n, n), left.dtype) if keeps else None
-            if kept is None:
-                quad, trace, q_wr = contract(left, right, self.beta_a, self.beta_b, inv_k, self.workspace)
-            else:
+            # the fused kernel's own forward can save the contraction's gradients for the backward pass
+            jac = {} if for_backward and self.kernel == "fused" and contract is self._contract_forward else None
+            if kept is not None:
                 quad, trace, q_wr = contract(left, right, self.beta_a, self.beta_b, inv_k, self.workspace, out=kept[0])
-            saved = (m, S, b_inv, W, Z, ZW, q, lb, lbt, left, right, inv_k, q_wr, None if kept is None else kept[1], M)
+            elif jac is not None:
+                quad, trace, q_wr = contract(left, right, self.beta_a, self.beta_b, inv_k, self.workspace, jacobian=jac)
+            else:
+                quad, trace, q_wr = contract(left, right, self.beta_a, self.beta_b, inv_k, self.workspace)
+            saved = (m, S, b_inv, W, Z, ZW, q, lb, lbt, left, right, inv_k, q_wr, None if kept is None else kept[1], jac, M)
         V = quad[self.full].view(e, e) - torch.outer(M, M)
         if not mean_only:
             V.diagonal().add_(self.alpha2 - trace)
@@ -478,7 +485,7 @@ class MomentMatchingGP:
 
     def _backward(self, saved, gM, gV, gC, mean_only, needs):
         """Hand-derived gradients of ``(M, V, C)`` wrt ``(m, S, *constants)`` (``None`` where not needed)."""
-        m, S, b_inv, W, Z, ZW, q, lb, lbt, left, right, inv_k, q_wr, kept, M = saved
+        m, S, b_inv, W, Z, ZW, q, lb, lbt, left, right, inv_k, q_wr, kept, jac, M = saved
         e, p, d = self.num_outputs, self.num_pairs, self.input_dim
         need_c = dict(zip(_CONSTANTS, needs[2:]))
         # V = quad[full] - M M^T + diag(alpha2 - trace)
@@ -488,7 +495,7 @@ class MomentMatchingGP:
         grad_left, grad_right, g_beta_a, g_beta_b, g_inv_k = self._contract_backward(
             left, right, self.beta_a, self.beta_b, inv_k, q_wr, g_quad, g_trace, self.workspace,
             (True, True, need_c["beta_a"], need_c["beta_b"], need_c["inv_k"] and not mean_only),
-            Q=self.workspace.kept(kept),
+            Q=self.workspace.kept(kept), **({} if jac is None else {"jacobian": jac}),
         )
         # left = [2 Z_a T, u, 1], right = [Z_b, 1, v];  [u; v] = log_k[pair_outputs] + zwz[E:] - [hl_p; 0]
         g_uv = torch.cat([grad_left[..., d], grad_right[..., d + 1]], dim=0)  # (2P, n)

@@ -34,6 +34,9 @@ class PolicySearchResult:
         failed_evaluations: trial points where the closed form failed (counted as +inf).
         seconds: wall time; message: scipy's termination message (of the last round).
         restarts: rounds restarted after a line search broke down on failed points.
+        status: why it stopped, scipy's L-BFGS-B status of the last round: 0 converged (J or its
+            gradient stopped changing), 1 a budget ran out (iterations or evaluations), 2 the line
+            search stopped abnormally; -1 before any round ran.
     """
 
     theta: np.ndarray
@@ -45,6 +48,7 @@ class PolicySearchResult:
     seconds: float
     message: str
     restarts: int = 0
+    status: int = -1
 
 
 #: scipy's L-BFGS-B makes its first step of unit length; after a line search that broke down on
@@ -87,7 +91,7 @@ def optimise_policy(objective: PolicyObjective, max_iterations: int = 150, max_e
     if not math.isfinite(J0):
         objective.set_flat(theta0)
         raise NumericalError("J(theta) is not finite at the starting policy; the dynamics model is degenerate")
-    scale, iterations, restarts, message = 1.0, 0, 0, ""
+    scale, iterations, restarts, message, status = 1.0, 0, 0, "", -1
     with threadpool_limits(limits=1, user_api="blas"):
         while True:
             failed_before, J_before_round = counts["failed"], best["J"]
@@ -100,7 +104,7 @@ def optimise_policy(objective: PolicyObjective, max_iterations: int = 150, max_e
                          "maxcor": int(memory)},
             )
             iterations += int(res.nit)
-            message = str(res.message)
+            message, status = str(res.message), int(res.status)
             # stopped for another reason than the budget after meeting failed points: scipy's
             # line search does not back off from +inf (it reports an abnormal stop, or even
             # "convergence" with the zero gradient we return there)
@@ -122,6 +126,7 @@ def optimise_policy(objective: PolicyObjective, max_iterations: int = 150, max_e
         seconds=time.perf_counter() - start,
         message=message,
         restarts=restarts,
+        status=status,
     )
 
 

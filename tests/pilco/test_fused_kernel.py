@@ -87,18 +87,24 @@ def test_forward_matches_the_torch_reference(num_outputs, n, d, traced, inline) 
 
 @pytest.mark.parametrize("num_outputs,n,d", [(1, 7, 1), (2, 8, 3), (3, 33, 9), (4, 20, 13)])
 @pytest.mark.parametrize("traced", [True, False])
-@pytest.mark.parametrize("kept,inline", [(True, False), (False, False), (False, True)])
-def test_backward_matches_the_torch_reference(num_outputs, n, d, traced, kept, inline) -> None:
-    """gA, gu, gB, gv (the columns of grad_left/right that moment matching reads), g_w_left, g_w_right."""
+@pytest.mark.parametrize("Q_from", ["kept", "block", "inline", "jacobian"])
+def test_backward_matches_the_torch_reference(num_outputs, n, d, traced, Q_from) -> None:
+    """gA, gu, gB, gv (the columns of grad_left/right that moment matching reads), g_w_left, g_w_right;
+    with ``Q`` kept, formed again into a block or inline, or not at all: scaled from the gradients of
+    ``quad_p`` and ``trace_p`` that the fused forward pass saved (``jacobian``)."""
     left, right, wl, wr, inv_k, g_quad, g_trace = _contraction_inputs(num_outputs, n, d, seed=10 * n + d)
     if not traced:
         inv_k, g_trace = inv_k[:0], None
-    Q = torch.exp(left @ right.mT) if kept else None
+    Q = torch.exp(left @ right.mT) if Q_from == "kept" else None
     q_wr = moments._contract_forward(left, right, wl, wr, inv_k, moments._Workspace())[2]
+    jacobian = {} if Q_from == "jacobian" else None
+    if jacobian is not None:
+        q_wr = fused.forward(left, right, wl, wr, inv_k, moments._Workspace(), inline=True, jacobian=jacobian)[2]
+        assert jacobian["hA"].shape == (inv_k.shape[0], n, d)
     needs = (True, True, True, True, False)
     ref = moments._contract_backward(left, right, wl, wr, inv_k, q_wr, g_quad, g_trace, moments._Workspace(), needs, Q=Q)
     got = fused.backward(left, right, wl, wr, inv_k, q_wr, g_quad, g_trace, moments._Workspace(), needs, Q=Q,
-                         inline=inline)
+                         inline=Q_from in ("inline", "jacobian"), jacobian=jacobian)
     used = {"left": [*range(d), d], "right": [*range(d), d + 1]}  # the constant columns' gradients are never read
     assert _rel(got[0][..., used["left"]], ref[0][..., used["left"]]) < 1e-12
     assert _rel(got[1][..., used["right"]], ref[1][..., used["right"]]) < 1e-12
@@ -106,28 +112,34 @@ def test_backward_matches_the_torch_reference(num_outputs, n, d, traced, kept, i
     assert got[4] is None
 
 
-@pytest.mark.parametrize("inline", [False, True])
-def test_backward_gradient_of_inv_k_and_skipped_w_right(inline) -> None:
+@pytest.mark.parametrize("inline,saved", [(False, False), (True, False), (True, True)])
+def test_backward_gradient_of_inv_k_and_skipped_w_right(inline, saved) -> None:
     """``g_inv_k = g_trace Q`` where asked for (posteriors with gradients); no ``g_w_right`` where not."""
     left, right, wl, wr, inv_k, g_quad, g_trace = _contraction_inputs(2, 9, 2, seed=3)
     q_wr = moments._contract_forward(left, right, wl, wr, inv_k, moments._Workspace())[2]
+    jacobian = {} if saved else None
+    if saved:
+        fused.forward(left, right, wl, wr, inv_k, moments._Workspace(), inline=True, jacobian=jacobian)
     needs = (True, True, False, False, True)
     ref = moments._contract_backward(left, right, wl, wr, inv_k, q_wr, g_quad, g_trace, moments._Workspace(), needs)
-    got = fused.backward(left, right, wl, wr, inv_k, q_wr, g_quad, g_trace, moments._Workspace(), needs, inline=inline)
+    got = fused.backward(left, right, wl, wr, inv_k, q_wr, g_quad, g_trace, moments._Workspace(), needs, inline=inline,
+                         jacobian=jacobian)
     assert got[2] is None and got[3] is None
     assert _rel(got[4], ref[4]) < 1e-13
 
 
 @pytest.mark.parametrize("threads", [2, 3, 8])
-@pytest.mark.parametrize("inline", [False, True])
-def test_results_do_not_depend_on_the_number_of_threads(threads, inline) -> None:
+@pytest.mark.parametrize("inline,saved", [(False, False), (True, False), (True, True)])
+def test_results_do_not_depend_on_the_number_of_threads(threads, inline, saved) -> None:
     left, right, wl, wr, inv_k, g_quad, g_trace = _contraction_inputs(4, 21, 5, seed=7)
     needs = (True, True, True, True, False)
 
     def both(t):
-        quad, trace, q_wr = fused.forward(left, right, wl, wr, inv_k, moments._Workspace(), threads=t, inline=inline)
+        jacobian = {} if saved else None
+        quad, trace, q_wr = fused.forward(left, right, wl, wr, inv_k, moments._Workspace(), threads=t, inline=inline,
+                                          jacobian=jacobian)
         grads = fused.backward(left, right, wl, wr, inv_k, q_wr, g_quad, g_trace, moments._Workspace(), needs, threads=t,
-                               inline=inline)
+                               inline=inline, jacobian=jacobian)
         return (quad, trace, q_wr, *grads[:4])
 
     for a, b in zip(both(1), both(threads)):
@@ -154,7 +166,7 @@ def test_generated_kernels_are_cached_per_dimension(tmp_path, monkeypatch) -> No
     files = sorted(p.name for p in tmp_path.glob("qkernel_d2_*.py"))
     assert len(files) == 1 and module.__file__.endswith(files[0])
     text = (tmp_path / files[0]).read_text()
-    assert "s0_1 += g0 * b1" in text and "def forward_q(" in text and "def backward_q(" in text
+    assert "s0_1 += g0 * b1" in text and all(f"def {name}(" in text for name in ("forward_q", "forward_jac", "backward_q"))
     left, right, wl, wr, inv_k, g_quad, g_trace = _contraction_inputs(1, 4, 2, seed=0)
     q_wr = torch.zeros(1, 4, dtype=DT)
     fused.backward(left, right, wl, wr, inv_k, q_wr, g_quad, g_trace, moments._Workspace(), (True,) * 4 + (False,))

@@ -42,6 +42,29 @@ def test_converges_on_a_smooth_objective():
     np.testing.assert_allclose(result.theta, [1.0, -2.0, 0.5], atol=1e-6)
     assert result.J_before == pytest.approx(5.25) and result.J_after < 1e-10 and result.failed_evaluations == 0
     np.testing.assert_array_equal(objective.get_flat(), result.theta)  # the best is left in the controller
+    assert result.status == 0 and "CONVERGENCE" in result.message
+
+
+class Rosenbrock(Quadratic):
+    """Rosenbrock's valley from (-1.2, 1): L-BFGS-B needs some 40 iterations to its minimum (1, 1)."""
+
+    def __init__(self):
+        super().__init__([1.0, 1.0])
+        self.theta = np.array([-1.2, 1.0])
+
+    def value_and_grad(self, theta):
+        x, y = theta
+        return float((1 - x) ** 2 + 100 * (y - x * x) ** 2), np.array([-2 * (1 - x) - 400 * x * (y - x * x), 200 * (y - x * x)])
+
+
+@pytest.mark.parametrize("budget", [{"max_iterations": 5, "max_evaluations": 100}, {"max_iterations": 100, "max_evaluations": 8}])
+def test_a_search_stopped_by_its_budget_says_so(budget):
+    """``status`` 1 (and scipy's message) when the iterations or the evaluations ran out, 0 when it
+    converged with budget to spare; logged per trial as ``policy_search_status``, so that a short
+    search can be told from a converged one."""
+    assert optimise_policy(Rosenbrock(), max_iterations=200, max_evaluations=400).status == 0
+    result = optimise_policy(Rosenbrock(), **budget)
+    assert result.status == 1 and "LIMIT" in result.message
 
 
 @pytest.mark.parametrize("error", [torch.linalg.LinAlgError, NumericalError])
