@@ -16,7 +16,7 @@ them for constant columns whose gradient nobody reads. Here:
 
 * ``Q`` is formed one of two ways (``inline``, the kernel names of :mod:`plugins.pilco.moments`):
   by torch and NumPy, a block of pairs at a time (a batched product and NumPy's SIMD ``exp``;
-  kernel ``numba``), or inside the compiled loops, a row at a time, never stored (kernel
+  kernel ``numba``), or inside the compiled loops, two rows at a time, never stored (kernel
   ``fused``: each row is the ``d + 2`` multiply-adds of its exponent and :func:`exp_inline`, a
   vectorisable ``exp``, so ``Q`` never goes through memory and no product is streamed twice);
 * the forward sums read each block once while it is in cache (:func:`reduce_rows`), or take each
@@ -526,7 +526,7 @@ def forward(left, right, w_left, w_right, inv_k, workspace, out=None, threads: i
 
     ``left, right (P, n, d + 2)`` with ``Q_p = exp(left_p right_p^T)``, formed ``block`` pairs at a
     time (a number or a function ``(n, itemsize) -> pairs``) into ``out`` or the workspace's scratch;
-    ``inline``: formed row by row inside the compiled loop instead (``kernels(d).forward_q``; no
+    ``inline``: formed two rows at a time inside the compiled loop instead (``kernels(d).forward_q``; no
     ``Q`` is stored, so ``out`` must be ``None``). ``jacobian`` (with ``inline``): a dict that
     receives the gradients of every ``quad_p`` and ``trace_p`` (``kernels(d).forward_jac``), for
     :func:`backward` to scale instead of forming ``Q`` again."""

@@ -42,7 +42,7 @@ Implementation notes (all float64, vectorised over outputs and basis points):
   (:func:`_contract_forward`, :func:`_contract_backward`: the reference, always available),
   ``numba`` (:mod:`plugins.pilco.fused`: the same forward, a compiled backward pass that reads
   ``Q`` once instead of through five thin products) and ``fused`` (the same compiled passes with
-  ``Q`` formed row by row inside them, never stored; the default where numba is installed). They
+  ``Q`` formed two rows at a time inside them, never stored; the default where numba is installed). They
   agree to round-off (J 1e-11, dJ 5e-8 relative on the double pendulum); ``threads`` > 1 runs
   groups of output pairs in parallel with the compiled kernels, with the same results.
 * A rollout whose gradient will be taken can keep each step's ``Q`` in a buffer of its own
