@@ -543,8 +543,9 @@ def forward(left, right, w_left, w_right, inv_k, workspace, out=None, threads: i
         module = kernels(d)
         L, Rt = _numpy(left.contiguous()), _numpy(right.mT.contiguous())
         if jacobian is not None:
-            jacobian.update(A=np.ascontiguousarray(L[..., :d]), Bt=np.ascontiguousarray(Rt[:, :d]),
-                            gA=np.empty((p, n, d)), gu=np.empty((p, n)), gBv=np.empty((p, d + 1, n)), gwr=np.empty((p, n)),
+            # A and Bt only feed forward_jac; the dict keeps just what the backward pass reads
+            A, Bt = np.ascontiguousarray(L[..., :d]), np.ascontiguousarray(Rt[:, :d])
+            jacobian.update(gA=np.empty((p, n, d)), gu=np.empty((p, n)), gBv=np.empty((p, d + 1, n)), gwr=np.empty((p, n)),
                             hA=np.empty((e, n, d)), hu=np.empty((e, n)), hBv=np.empty((e, d + 1, n)))
             j = jacobian
     elif jacobian is not None:
@@ -555,7 +556,7 @@ def forward(left, right, w_left, w_right, inv_k, workspace, out=None, threads: i
             module.forward_q(L, Rt, np.empty(n), np.empty(n), start, stop, wl, wr, ik, quad, trace, q_wr)
             return
         if inline:
-            module.forward_jac(L, Rt, np.empty(n), np.empty(n), start, stop, j["A"], j["Bt"], wl, wr, ik, quad, trace, q_wr,
+            module.forward_jac(L, Rt, np.empty(n), np.empty(n), start, stop, A, Bt, wl, wr, ik, quad, trace, q_wr,
                                j["gA"], j["gu"], j["gBv"], j["gwr"], j["hA"], j["hu"], j["hBv"])
             return
         for s in range(start, stop, size):
