@@ -2,7 +2,7 @@
 
 Usage::
 
-    .venv/bin/python benchmarks/mc_pilco_step.py [--tasks cartpole unicycle] [--repeats 5]
+    .venv/bin/python benchmarks/mc_pilco_step.py [--tasks cartpole unicycle] [--repeats 5] [--device cuda]
 
 For each task: a dynamics GP on ``n`` transitions of uniformly random rollouts of the real task, with
 hyperparameters set from the data's scales (as ``benchmarks/task_objectives.py`` does: they do not
@@ -11,9 +11,14 @@ particle objective at its defaults (400 particles, the preset's planning horizon
 row is one posterior: the full GP on all ``n`` points, or the FITC posterior on ``planning_basis``
 of them that the learner's option builds (``GPModel.posterior(max_basis)``). Columns:
 
-* CPU ms per Adam step (the estimate J_hat and its gradient: forward and backward), median of
-  ``--repeats`` after a warm-up, one torch thread, and what the learner's default search of at most
-  1500 steps costs at that rate;
+* ms per Adam step (the estimate J_hat and its gradient: forward and backward), median of
+  ``--repeats`` after a warm-up, and what the learner's default search of at most 1500 steps costs at
+  that rate: CPU time on one torch thread with ``--device cpu`` (the default); with ``--device cuda``
+  the wall time on the GPU (``mc-pilco``'s ``device=cuda``: the GP, controller, cost and particles
+  there, the random numbers drawn on the host as the learner draws them), each step ending with a
+  synchronisation, so the wall is the real latency; on a GPU the row's first column launches every
+  operation (``cuda_graph=False``) and a second column replays the step as a CUDA graph (the learner's
+  default), which the search's minutes are computed from;
 * J_hat with dropout 0 on one fixed set of random numbers, and its difference from the full GP's on
   the same numbers, beside the Monte-Carlo standard error of J_hat itself (the spread over 20 sets of
   random numbers / sqrt(20)): a reduced basis whose change is well inside that error changes the
@@ -49,8 +54,10 @@ SIZES: dict[str, tuple[dict[str, str], int, tuple[int, ...]]] = {
 }
 
 
-def particle_objectives(task_name: str, options: dict[str, str], n: int, bases: tuple[int, ...], particles: int):
-    """``{label: ParticleObjective}``: the full GP on ``n`` random-rollout transitions, then FITC on each basis size."""
+def particle_objectives(task_name: str, options: dict[str, str], n: int, bases: tuple[int, ...], particles: int,
+                        device: torch.device = torch.device("cpu")):
+    """``{label: ParticleObjective}``: the full GP on ``n`` random-rollout transitions, then FITC on each basis
+    size, each with its posterior, controller, cost and initial distribution on ``device``."""
     from harness.discovery import load_task
     from plugins.mc_pilco.learner import McPilco
     from plugins.mc_pilco.particles import ParticleObjective
@@ -66,23 +73,29 @@ def particle_objectives(task_name: str, options: dict[str, str], n: int, bases: 
     posteriors = {f"all {n} (full GP)": full_posterior(X, Y, log_ell, log_alpha, log_sigma)}
     for m in bases:
         posteriors[f"{m} (FITC)"] = reduced_posterior(X, Y, X, log_ell, log_alpha, log_sigma, m)
-    cost = CostMoments(spec.cost, learner.cost_width)
-    mean, cov = torch.as_tensor(spec.init_mean, dtype=torch.float64), torch.as_tensor(spec.init_cov, dtype=torch.float64)
+    cost = CostMoments(spec.cost, learner.cost_width, device)
+    mean = torch.as_tensor(spec.init_mean, dtype=torch.float64, device=device)
+    cov = torch.as_tensor(spec.init_cov, dtype=torch.float64, device=device)
     objectives = {}
     for label, posterior in posteriors.items():
         controller = initial_controller(spec, learner.preset, learner.layout, "trapezoid", torch.Generator().manual_seed(0))
-        objectives[label] = ParticleObjective(controller, posterior, learner.layout, cost, mean, cov, learner.horizon, particles)
+        objectives[label] = ParticleObjective(controller.to(device), posterior.detach().to(device), learner.layout, cost, mean, cov,
+                                              learner.horizon, particles)
     return objectives, learner.horizon
 
 
-def step_cpu_ms(objective, repeats: int) -> float:
+def step_ms(objective, repeats: int, device: torch.device) -> float:
+    """Median ms of one Adam step's J_hat + gradient (:meth:`ParticleObjective.value_and_grad`: the random
+    numbers drawn on the host, the estimate, its gradient and the host's read of J_hat): CPU time on the
+    CPU, wall time on a GPU (where the first call also captures the CUDA graph, if ``cuda_graph``)."""
     generator = torch.Generator().manual_seed(0)
-    objective.value(generator, 0.25).backward()  # warm-up
+    clock = time.perf_counter if device.type == "cuda" else time.process_time
+    objective.value_and_grad(generator, 0.25)  # warm-up (and capture)
     times = []
     for _ in range(repeats):
-        start = time.process_time()
-        objective.value(generator, 0.25).backward()
-        times.append(time.process_time() - start)
+        start = clock()
+        objective.value_and_grad(generator, 0.25)  # ends with a host read of J_hat: the wall is the real latency
+        times.append(clock() - start)
     return 1e3 * statistics.median(times)
 
 
@@ -96,31 +109,50 @@ def main(argv: list[str] | None = None) -> None:
     parser.add_argument("--tasks", nargs="+", default=list(SIZES), choices=list(SIZES))
     parser.add_argument("--repeats", type=int, default=5)
     parser.add_argument("--particles", type=int, default=400)
-    parser.add_argument("--out", type=Path, default=ROOT / "results" / "benchmarks" / "mc_pilco_step.md")
+    parser.add_argument("--device", default="cpu", choices=("cpu", "cuda"),
+                        help="where the particles run (cuda: wall time on the GPU; cpu: CPU time on one thread)")
+    parser.add_argument("--out", type=Path, default=None,
+                        help="default: results/benchmarks/mc_pilco_step.md (mc_pilco_step_cuda.md with --device cuda)")
     args = parser.parse_args(argv)
+    device = torch.device(args.device)
+    if device.type == "cuda" and not torch.cuda.is_available():
+        parser.error("--device cuda: torch sees no CUDA GPU here; run without --device (CPU)")
+    gpu = device.type == "cuda"
+    out = args.out or ROOT / "results" / "benchmarks" / ("mc_pilco_step_cuda.md" if gpu else "mc_pilco_step.md")
     torch.set_num_threads(1)
     load = load_average()
-    lines = ["# MC-PILCO: CPU per Adam step, and the estimate on fewer basis points", "",
+    where = f"on the GPU ({torch.cuda.get_device_name(device)}), wall time" if gpu else "one torch thread, CPU time"
+    unit = "GPU wall" if gpu else "CPU"
+    lines = [f"# MC-PILCO: {unit} per Adam step, and the estimate on fewer basis points", "",
              f"Command: `{command_line(__file__, argv)}`  ", f"{machine_line(load)}  ",
-             f"{args.particles} particles, dropout 0.25 in the timed steps; J_hat without dropout; one torch thread.", "",
-             "| task | planning basis | horizon | CPU ms per Adam step | speed-up | a search of 1500 steps (the default), CPU min "
+             f"{args.particles} particles, dropout 0.25 in the timed steps; J_hat without dropout; {where}.", "",
+             f"| task | planning basis | horizon | {unit} ms per Adam step{', every operation launched' if gpu else ''} | speed-up |"
+             + (" ms per Adam step, replayed as a CUDA graph (the default) | graph speed-up |" if gpu else "")
+             + f" a search of 1500 steps (the default), {unit} min "
              "| J_hat (20 sets of random numbers: mean) | its Monte-Carlo standard error "
              "| J_hat minus the full GP's, same random numbers (mean [min, max]) |",
-             "|---|---|---|---|---|---|---|---|---|"]
+             "|---" * (11 if gpu else 9) + "|"]
     for task in args.tasks:
         options, n, bases = SIZES[task]
-        objectives, horizon = particle_objectives(task, options, n, bases, args.particles)
+        objectives, horizon = particle_objectives(task, options, n, bases, args.particles, device)
         reference = None
         base_ms = None
         for label, objective in objectives.items():
-            ms = step_cpu_ms(objective, args.repeats)
+            ms = step_ms(objective, args.repeats, device)
+            graph = ""
+            if gpu:  # the learner's default: replayed as a CUDA graph; the row's own ms: every operation launched
+                objective.cuda_graph = False
+                ms = step_ms(objective, args.repeats, device)
+                objective.cuda_graph = True
+                graph_ms = step_ms(objective, args.repeats, device)
+                graph = f" {graph_ms:.1f} | {ms / graph_ms:.1f}x |" if objective.graph_error is None else f" ({objective.graph_error}) | |"
             values = estimates(objective)
             if reference is None:
                 reference, base_ms = values, ms
             diff = values - reference
-            lines.append(f"| {task} | {label} | {horizon} | {ms:.0f} | {base_ms / ms:.1f}x | {1500 * ms / 6e4:.0f} | {values.mean():.3f} | "
+            lines.append(f"| {task} | {label} | {horizon} | {ms:.0f} | {base_ms / ms:.1f}x |{graph} {1500 * (graph_ms if gpu else ms) / 6e4:.1f} | {values.mean():.3f} | "
                          f"{values.std(ddof=1) / np.sqrt(len(values)):.3f} | {diff.mean():+.3f} [{diff.min():+.3f}, {diff.max():+.3f}] |")
-    write_report(lines, args.out)
+    write_report(lines, out)
 
 
 if __name__ == "__main__":

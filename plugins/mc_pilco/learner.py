@@ -22,6 +22,7 @@ as the search stalls, at most 1500 steps per trial (cart-pole: 2000-4000).
 from __future__ import annotations
 
 import math
+import warnings
 from collections.abc import Iterator
 from typing import Any
 
@@ -76,6 +77,8 @@ class McPilco(Learner):
         Option("threads", int, None, "CPU threads (default: the harness's choice; harness.threads)", low=1, execution=True),
         Option("device", str, "cpu", "where the GP is trained and the particles run: cpu, cuda (a GPU) or auto (cuda where "
                "torch sees one)", choices=("cpu", "cuda", "auto"), execution=True),
+        Option("cuda_graph", bool, True, "on a GPU, capture an Adam step's J_hat and gradient as a CUDA graph (one per "
+               "dropout value per search) and replay it (false: launch every operation each step)", execution=True),
     )
 
     def __init__(self, spec: TaskSpec, options: dict[str, Any] | None = None, seed: int = 0) -> None:
@@ -131,6 +134,7 @@ class McPilco(Learner):
         cost = CostMoments(spec.cost, self.cost_width, device)
         init_mean = torch.as_tensor(np.asarray(spec.init_mean, dtype=np.float64), device=device)
         init_cov = torch.as_tensor(np.asarray(spec.init_cov, dtype=np.float64), device=device)
+        graph_warned = False
         while True:
             if trial > 0:  # apply the policy handed over last for one trial, record the data
                 interaction.rollout(PilcoPolicy.snapshot(controller, self.layout))
@@ -140,7 +144,7 @@ class McPilco(Learner):
             hyperparameters = model.hyperparameters
             posterior = model.posterior(max_basis=o["planning_basis"]).detach()
             objective = ParticleObjective(controller, posterior, self.layout, cost, init_mean, init_cov,
-                                          self.horizon, o["particles"])
+                                          self.horizon, o["particles"], cuda_graph=o["cuda_graph"])
             search = optimise_particles(objective, max_steps=o["max_steps"], lr=o["lr"], dropout=o["dropout"],
                                         dropout_step=o["dropout_step"], lr_decay=o["lr_decay"], window=o["window"],
                                         min_improvement=o["min_improvement"], seed=1000 * self.seed + trial)
@@ -153,6 +157,12 @@ class McPilco(Learner):
                 "planning_basis": float(posterior.inputs.shape[0]),
                 "policy_parameters": float(sum(p.numel() for p in controller.parameters())),
             }
+            if objective.cuda_graph and device.type == "cuda":  # replayed as a CUDA graph (1) or launched op by op (0)?
+                self.metrics["cuda_graph"] = float(objective.graph_error is None)
+                if objective.graph_error is not None and not graph_warned:
+                    graph_warned = True
+                    warnings.warn(f"mc-pilco: an Adam step could not be captured as a CUDA graph ({objective.graph_error}); "
+                                  "every step launches its operations one by one (slower; metric cuda_graph = 0)", stacklevel=1)
             if not math.isfinite(search.J_after):
                 self.metrics["policy_search_failed"] = 1.0
             self._state = {"controller": cpu_state_dict(controller),

@@ -49,7 +49,7 @@ def optimise_particles(objective: ParticleObjective, *, max_steps: int, lr: floa
                        lr_decay: float, window: int, min_improvement: float, seed: int) -> ParticleSearchResult:
     """Minimise ``J_hat`` over the controller's parameters (left at the final values)."""
     start = time.perf_counter()
-    params = [p for p in objective.controller.parameters() if p.requires_grad]
+    params = objective.parameters()
 
     def checked() -> float:  # the same fresh particles before and after, no dropout
         with torch.no_grad():
@@ -64,17 +64,14 @@ def optimise_particles(objective: ParticleObjective, *, max_steps: int, lr: floa
     skipped = reductions = steps = 0
     p, rate = float(dropout), float(lr)
     for steps in range(1, int(max_steps) + 1):
-        opt.zero_grad(set_to_none=True)
-        J = objective.value(gen, p)
-        if not bool(torch.isfinite(J)):
+        J, usable, grads = objective.value_and_grad(gen, p)  # on a GPU: a CUDA graph replayed (cuda_graph)
+        if not usable:  # J_hat or its gradient not finite
             skipped += 1
             continue
-        J.backward()
-        if not all(bool(torch.isfinite(q.grad).all()) for q in params if q.grad is not None):
-            skipped += 1
-            continue
+        for q, g in zip(params, grads):
+            q.grad = g
         opt.step()
-        estimates.append(float(J.detach()))
+        estimates.append(J)
         if len(estimates) % window == 0:
             trace.append(float(np.mean(estimates[-window:])))
             if len(trace) >= 2 and trace[-2] - trace[-1] < min_improvement * abs(trace[-2]):

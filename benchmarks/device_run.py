@@ -1,0 +1,125 @@
+"""One learning run on a machine without an MLflow store (e.g. a lent GPU machine), its trials written as they end.
+
+Usage::
+
+    python benchmarks/device_run.py --learner mc-pilco --task unicycle --seed 100 --set learner.device=cuda \\
+        --set task.init=code --max-trials 30 --out results/benchmarks/device_run_mc-pilco_unicycle.md
+
+The run is :func:`harness.runner.run` with an in-memory tracker (nothing is stored, no checkpoint
+survives the process): it is for measuring what a trial costs on a device and what the first trials
+of a tuning seed do, not for reported results (those come from ``harness sweep`` into the store).
+After every hand-over the script prints the harness's progress line and rewrites ``--out`` (markdown:
+a row per trial with the interaction, evaluation, the learner's J and where the trial's wall time
+went) and a JSON file beside it with every metric, so a run stopped by a time limit keeps its trials.
+"""
+
+from __future__ import annotations
+
+import argparse
+import json
+import sys
+import time
+from pathlib import Path
+from typing import Any
+
+ROOT = Path(__file__).resolve().parents[1]
+sys.path.insert(0, str(ROOT))
+
+from benchmarks.report_file import command_line, load_average, machine_line, write_report  # noqa: E402
+
+#: metric -> column heading, in the table's order (a metric the learner does not log shows as "-")
+COLUMNS = {
+    "interaction_seconds": "interaction s", "eval_cost": "eval cost", "eval_success_rate": "eval success",
+    "J_before": "J before", "J_after": "J after", "model_train_seconds": "GP fit s",
+    "policy_opt_seconds": "policy search s", "policy_steps": "search steps", "policy_evaluations": "evaluations",
+    "wall_seconds": "wall s (run)",
+}
+
+
+def parse_sets(values: list[str]) -> tuple[dict[str, str], dict[str, str]]:
+    """``learner.KEY=VALUE`` / ``task.KEY=VALUE`` pairs into the learner's and the task's options."""
+    learner, task = {}, {}
+    for item in values:
+        key, sep, value = item.partition("=")
+        scope, dot, name = key.partition(".")
+        if not sep or not dot or scope not in ("learner", "task") or not name:
+            raise SystemExit(f"--set {item!r}: expected learner.KEY=VALUE or task.KEY=VALUE")
+        (learner if scope == "learner" else task)[name] = value
+    return learner, task
+
+
+class FileProgress:
+    """A :class:`~harness.progress.ProgressReporter` that prints each hand-over and rewrites the report."""
+
+    def __init__(self, header: list[str], out: Path) -> None:
+        self.header, self.out, self.records = header, out, []
+        self.previous_wall: float | None = None
+
+    def start(self, title: str, total: float | None, unit: str) -> None:
+        print(f"{title}: up to {total} {unit}", flush=True)
+
+    def update(self, record: dict[str, Any], completed: float) -> None:
+        from harness.progress import format_record
+
+        print(format_record(record, self.previous_wall), flush=True)
+        self.previous_wall = record.get("wall_seconds")
+        self.records.append(dict(record))
+        self.write()
+
+    def finish(self, summary: str) -> None:
+        print(summary, flush=True)
+        self.write(summary)
+
+    def write(self, summary: str | None = None) -> None:
+        def cell(record: dict[str, Any], key: str) -> str:
+            value = record.get(key)
+            if value is None:
+                return "-"
+            if key == "eval_success_rate":
+                return f"{100 * value:.0f} %"
+            return f"{value:.0f}" if key in ("policy_steps", "policy_evaluations") else f"{value:.2f}"
+
+        lines = list(self.header)
+        lines += ["| trial | " + " | ".join(COLUMNS.values()) + " |", "|---" * (len(COLUMNS) + 1) + "|"]
+        lines += [f"| {r['trial']} | " + " | ".join(cell(r, key) for key in COLUMNS) + " |" for r in self.records]
+        lines += ["", summary or f"(in progress: {len(self.records)} trials written, {time.strftime('%H:%M:%S')} UTC)"]
+        write_report(lines, self.out, echo=False)
+        write_report([json.dumps(self.records, indent=1, default=float)], self.out.with_suffix(".json"), echo=False)
+
+
+def main(argv: list[str] | None = None) -> None:
+    parser = argparse.ArgumentParser(description=__doc__.splitlines()[0])
+    parser.add_argument("--learner", required=True)
+    parser.add_argument("--task", required=True)
+    parser.add_argument("--seed", type=int, default=100)
+    parser.add_argument("--set", action="append", default=[], metavar="SCOPE.KEY=VALUE",
+                        help="learner.KEY=VALUE or task.KEY=VALUE (as harness bench --set)")
+    parser.add_argument("--max-trials", type=int, default=None)
+    parser.add_argument("--budget-seconds", type=float, default=None)
+    parser.add_argument("--out", type=Path, required=True, help="markdown report (a .json with every metric beside it)")
+    args = parser.parse_args(argv)
+    learner_options, task_options = parse_sets(args.set)
+
+    from harness.runner import RunConfig, run
+
+    config = RunConfig(args.learner, args.task, seed=args.seed, learner_options=learner_options, task_options=task_options,
+                       max_trials=args.max_trials, budget_seconds=args.budget_seconds)
+    config.validate()
+    header = [f"# {args.learner} on {args.task}, seed {args.seed}: one run without a store", "",
+              f"Command: `{command_line(__file__, argv)}`  ", f"{machine_line(load_average())}  "]
+    try:
+        import torch
+
+        if torch.cuda.is_available():
+            header[-1] += f"GPU: {torch.cuda.get_device_name(0)}.  "
+    except ImportError:
+        pass
+    header += [f"Options: learner {learner_options or '{}'}, task {task_options or '{}'}. Nothing of this run is in the "
+               "store: a tuning-seed measurement, not a reported result.", ""]
+    result = run(config, progress=FileProgress(header, args.out))
+    print(f"solved: {result.solved}; interaction to success: {result.interaction_time_to_success}; "
+          f"trials: {result.trials}; stop: {result.stop_reason}", flush=True)
+
+
+if __name__ == "__main__":
+    main()
