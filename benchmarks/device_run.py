@@ -26,6 +26,7 @@ ROOT = Path(__file__).resolve().parents[1]
 sys.path.insert(0, str(ROOT))
 
 from benchmarks.report_file import command_line, load_average, machine_line, write_report  # noqa: E402
+from harness.errors import exit_on_error  # noqa: E402
 
 #: metric -> column heading, in the table's order (a metric the learner does not log shows as "-")
 COLUMNS = {
@@ -34,18 +35,6 @@ COLUMNS = {
     "policy_opt_seconds": "policy search s", "policy_steps": "search steps", "policy_evaluations": "evaluations",
     "wall_seconds": "wall s (run)",
 }
-
-
-def parse_sets(values: list[str]) -> tuple[dict[str, str], dict[str, str]]:
-    """``learner.KEY=VALUE`` / ``task.KEY=VALUE`` pairs into the learner's and the task's options."""
-    learner, task = {}, {}
-    for item in values:
-        key, sep, value = item.partition("=")
-        scope, dot, name = key.partition(".")
-        if not sep or not dot or scope not in ("learner", "task") or not name:
-            raise SystemExit(f"--set {item!r}: expected learner.KEY=VALUE or task.KEY=VALUE")
-        (learner if scope == "learner" else task)[name] = value
-    return learner, task
 
 
 class FileProgress:
@@ -92,15 +81,17 @@ def main(argv: list[str] | None = None) -> None:
     parser.add_argument("--learner", required=True)
     parser.add_argument("--task", required=True)
     parser.add_argument("--seed", type=int, default=100)
-    parser.add_argument("--set", action="append", default=[], metavar="SCOPE.KEY=VALUE",
-                        help="learner.KEY=VALUE or task.KEY=VALUE (as harness bench --set)")
+    parser.add_argument("--set", action="append", default=[], metavar="KEY=VALUE",
+                        help="learner or task option, as harness bench --set (prefix learner./task. if ambiguous)")
     parser.add_argument("--max-trials", type=int, default=None)
     parser.add_argument("--budget-seconds", type=float, default=None)
     parser.add_argument("--out", type=Path, required=True, help="markdown report (a .json with every metric beside it)")
     args = parser.parse_args(argv)
-    learner_options, task_options = parse_sets(args.set)
 
-    from harness.runner import RunConfig, run
+    from harness.options import parse_assignments
+    from harness.runner import RunConfig, route_options, run
+
+    learner_options, task_options = route_options(args.learner, args.task, parse_assignments(args.set))
 
     config = RunConfig(args.learner, args.task, seed=args.seed, learner_options=learner_options, task_options=task_options,
                        max_trials=args.max_trials, budget_seconds=args.budget_seconds)
@@ -122,4 +113,4 @@ def main(argv: list[str] | None = None) -> None:
 
 
 if __name__ == "__main__":
-    main()
+    exit_on_error(main)

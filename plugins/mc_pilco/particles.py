@@ -33,7 +33,7 @@ import torch
 from plugins.pilco.controllers import RBFController, SquashedController
 from plugins.pilco.cost import CostMoments
 from plugins.pilco.gp import predict_latent
-from plugins.pilco.kernels import any_failed, deferred_checks, se_ard
+from plugins.pilco.kernels import any_failed, capture_cuda_graph, capture_failure, deferred_checks, se_ard
 from plugins.pilco.posterior import GPPosterior
 from plugins.pilco.propagate import StateLayout
 from plugins.pilco.trig import squash
@@ -230,19 +230,10 @@ class ParticleObjective:
         key = None if draws.keep is None else float(dropout)  # the dropout value enters the graph only with masks
         if key not in self._graphs:
             static = draws.to(device)
-            stream = torch.cuda.Stream(device)
-            stream.wait_stream(torch.cuda.current_stream(device))
             try:
-                with torch.cuda.stream(stream):
-                    for _ in range(2):
-                        self._graph_output(static, dropout, params)
-                torch.cuda.current_stream(device).wait_stream(stream)
-                graph = torch.cuda.CUDAGraph()
-                with torch.cuda.graph(graph):
-                    out = self._graph_output(static, dropout, params)
+                graph, out = capture_cuda_graph(device, lambda: self._graph_output(static, dropout, params))
             except RuntimeError as exc:
-                self.graph_error = f"{type(exc).__name__}: {str(exc).splitlines()[0]}"
-                torch.cuda.synchronize(device)
+                self.graph_error = capture_failure(exc)
                 return None
             self._graphs[key] = (static, graph, out)
         static, graph, out = self._graphs[key]

@@ -10,7 +10,7 @@ Conventions used throughout ``plugins.pilco``:
 from __future__ import annotations
 
 import threading
-from collections.abc import Iterator
+from collections.abc import Callable, Iterator
 from contextlib import contextmanager
 
 import torch
@@ -76,6 +76,35 @@ def any_failed(flags: list[torch.Tensor], like: torch.Tensor) -> torch.Tensor:
     if not flags:
         return torch.zeros((), dtype=torch.bool, device=like.device)
     return torch.cat([f.reshape(-1) for f in flags]).ne(0).any()  # a few kernels, not two per factorisation
+
+
+def capture_cuda_graph(device: torch.device, compute: Callable[[], torch.Tensor]) -> tuple[torch.cuda.CUDAGraph, torch.Tensor]:
+    """``compute()`` captured as a CUDA graph on ``device``: ``(graph, output)``, where ``graph.replay()``
+    recomputes ``output`` in place from the tensors ``compute`` reads (written in place between replays).
+
+    Two launched warm-up calls run first on a side stream, as CUDA graphs require. If capturing fails
+    (e.g. an operation that reads a GPU value on the host), the device is synchronised and the
+    ``RuntimeError`` propagates; :func:`capture_failure` turns it into the one line the objectives keep.
+    """
+    stream = torch.cuda.Stream(device)
+    stream.wait_stream(torch.cuda.current_stream(device))
+    try:
+        with torch.cuda.stream(stream):
+            for _ in range(2):
+                compute()
+        torch.cuda.current_stream(device).wait_stream(stream)
+        graph = torch.cuda.CUDAGraph()
+        with torch.cuda.graph(graph):
+            output = compute()
+    except RuntimeError:
+        torch.cuda.synchronize(device)
+        raise
+    return graph, output
+
+
+def capture_failure(exc: BaseException) -> str:
+    """Why capturing failed, in one line (``type: first line of the message``)."""
+    return f"{type(exc).__name__}: {str(exc).splitlines()[0]}"
 
 
 def cholesky_checked(matrix: torch.Tensor) -> torch.Tensor:

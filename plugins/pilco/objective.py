@@ -18,7 +18,7 @@ import torch
 
 from harness.task import SaturatingCost
 from plugins.pilco.cost import CostMoments
-from plugins.pilco.kernels import any_failed, deferred_checks
+from plugins.pilco.kernels import any_failed, capture_cuda_graph, capture_failure, deferred_checks
 from plugins.pilco.moments import MomentMatchingGP
 from plugins.pilco.posterior import GPPosterior
 from plugins.pilco.propagate import StateLayout, rollout
@@ -161,19 +161,10 @@ class PolicyObjective:
         key = (self.horizon, self.mean_only, self.policy_noise is None)
         if self._graph is None or self._graph[0] != key:
             self._graph = None
-            stream = torch.cuda.Stream(self.device)
-            stream.wait_stream(torch.cuda.current_stream(self.device))
             try:
-                with torch.cuda.stream(stream):
-                    for _ in range(2):
-                        self._deferred_output()
-                torch.cuda.current_stream(self.device).wait_stream(stream)
-                graph = torch.cuda.CUDAGraph()
-                with torch.cuda.graph(graph):
-                    static = self._deferred_output()
+                graph, static = capture_cuda_graph(self.device, self._deferred_output)
             except RuntimeError as exc:
-                self.graph_error = f"{type(exc).__name__}: {str(exc).splitlines()[0]}"
-                torch.cuda.synchronize(self.device)
+                self.graph_error = capture_failure(exc)
                 return self._deferred_output()
             self._graph = (key, graph, static)
         _, graph, static = self._graph
