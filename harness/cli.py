@@ -215,7 +215,8 @@ def eval_command(run_id: str, episodes: int, seed: int, trial: int | None, out_d
 @main.group("store")
 def store_group() -> None:
     """Maintain a tracking store: convert runs of older harness versions (migrate); a local store copied
-    to another path (a clone): relocate it, check it, describe its runs' files."""
+    to another path (a clone): relocate it, check it, describe its runs' files; list the checkpoints a clone
+    needs to resume the runs stopped before their limit."""
 
 
 @store_group.command("migrate")
@@ -466,3 +467,32 @@ def store_describe_command(tracking_uri: str | None) -> None:
         kept += sum(a.size for a in run.all_artifacts() if committed(a.path))
     click.echo(f"{store.uri}: {len(runs)} run descriptions say what is committed; the committed kinds of files come to "
                f"{kept / 1e6:.1f} MB here (budget {BUDGET_BYTES / 1e6:.0f} MB, results/README.md)")
+
+
+@store_group.command("checkpoints")
+@_store_uri
+@click.option("--paths", is_flag=True, help="Print only the local files to commit, one per line (for `git add -f`).")
+@_guarded
+def store_checkpoints_command(tracking_uri: str | None, paths: bool) -> None:
+    """List the runs stopped before their limit and the newest checkpoint of each: the files a clone needs to resume them."""
+    from harness.store import Store
+    from harness.store.committed import BUDGET_BYTES, MAX_FILE_BYTES, stopped_runs
+
+    store = Store(tracking_uri)
+    stopped = stopped_runs(store.search(None))
+    keep = [r for r in stopped if r.fits and r.file is not None]
+    if paths:
+        for r in keep:
+            click.echo(os.path.relpath(r.file))
+        return
+    for r in stopped:
+        if r.checkpoint is not None:
+            size = (f"{r.size / 1e3:.0f} kB" if r.fits else
+                    f"{r.size / 1e6:.1f} MB, over the {MAX_FILE_BYTES / 1e6:.0f} MB a committed file may have: stays on this machine")
+            click.echo(f"{r.run_id[:8]} {r.status:8} {r.name}: {r.checkpoint} ({size})")
+    without = sum(r.checkpoint is None for r in stopped)
+    uri = f" --tracking-uri {tracking_uri}" if tracking_uri else ""
+    click.echo(f"{store.uri}: {len(stopped)} runs stopped before their limit (or still running); {len(keep)} have a checkpoint "
+               f"a committed store can keep ({sum(r.size for r in keep) / 1e6:.1f} MB), {without} none here (not resumable "
+               f"from this store). Commit them with the store, no run writing: git add -f $(harness store checkpoints --paths{uri}); "
+               f"the repository's committed files stay under {BUDGET_BYTES / 1e6:.0f} MB (tests/harness/test_store_travels.py)")

@@ -15,6 +15,7 @@ from __future__ import annotations
 
 from collections import defaultdict
 from collections.abc import Sequence
+from dataclasses import dataclass
 from pathlib import Path
 
 from harness.store import layout
@@ -63,3 +64,47 @@ def describe_files(run: RunReader) -> str:
     """The run's description with its :func:`files_note` (replacing an earlier one; the rest kept)."""
     note = run.tags.get(layout.NOTE_TAG, "")
     return note.split(FILES_HEADING)[0] + files_note(run.all_artifacts())
+
+
+@dataclass(frozen=True)
+class StoppedRun:
+    """A run stopped before its limit (status not ``FINISHED``) and its newest checkpoint on this machine.
+
+    Attributes:
+        run_id, name, status: the run's.
+        checkpoint: artifact path of its newest checkpoint (``checkpoints/ckpt_trialNNN.ckpt``), ``None``
+            if this machine holds none (the run cannot be resumed from here).
+        file: that checkpoint's local file (``None`` without one, or on a served store).
+        size: its size in bytes (0 without one).
+    """
+
+    run_id: str
+    name: str
+    status: str
+    checkpoint: str | None
+    file: Path | None
+    size: int
+
+    @property
+    def fits(self) -> bool:
+        """Whether the checkpoint is small enough for the committed store (:data:`MAX_FILE_BYTES`)."""
+        return self.checkpoint is not None and self.size <= MAX_FILE_BYTES
+
+
+def stopped_runs(runs: Sequence[RunReader]) -> list[StoppedRun]:
+    """The harness runs of ``runs`` (bench runs and sweep cells) that ended before their limit or are still
+    open (``KILLED``, ``FAILED``, ``RUNNING``), each with its newest checkpoint: the one file a clone of
+    the repository needs to resume it (the store's other checkpoints are older)."""
+    from harness.checkpoint import PREFIX
+    from harness.datafile import trial_files
+
+    out = []
+    for run in runs:
+        if run.status == "FINISHED" or run.cell is None:
+            continue
+        files = {a.path: a for a in run.artifacts(layout.CHECKPOINTS) if not a.is_dir}
+        newest = list(trial_files(files, PREFIX).values())[-1:] or [None]
+        path = newest[0]
+        local = run.local_root / path if path is not None and run.local_root is not None else None
+        out.append(StoppedRun(run.run_id, run.name, run.status, path, local, files[path].size if path is not None else 0))
+    return out

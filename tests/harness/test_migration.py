@@ -21,23 +21,10 @@ from harness.runner import RunConfig, run
 from harness.task import Episode
 from harness.tracking import MlflowTracker, open_client
 from tasks.cartpole import CartPole
+from tests.harness.trackers import InterruptedMlflow
 
 PILCO_TINY = {"num_centres": "4", "policy_max_evaluations": "6", "gp_max_evals": "20", "plots": "false", "sample_particles": "0"}
 NOT_WALL = lambda history: [{k: v for k, v in r.items() if "seconds" not in k or k == "interaction_seconds"} for r in history]
-
-
-class InterruptedMlflow(MlflowTracker):
-    """Ctrl-C when trial ``step``'s metrics arrive (its policy and checkpoint are stored)."""
-
-    def __init__(self, uri: str, step: int) -> None:
-        super().__init__(uri)
-        self.step = step
-
-    def log_metrics(self, metrics, step):
-        if step == self.step and "eval_success_rate" in metrics:
-            self.step = -1
-            raise KeyboardInterrupt
-        super().log_metrics(metrics, step)
 
 
 def _artifact_dir(client, run_id: str) -> Path:

@@ -19,6 +19,7 @@ from harness.store.committed import BUDGET_BYTES, MAX_FILE_BYTES, committed
 from harness.sweep import SweepSpec, pools, run_sweep
 from harness.tracking import MlflowTracker
 from tests.harness import sweep_site
+from tests.harness.trackers import InterruptedMlflow
 
 REPO = Path(__file__).resolve().parents[2]
 
@@ -141,3 +142,33 @@ def test_the_committed_store_keeps_within_its_budget():
     sizes = {path: (REPO / path).stat().st_size for path in listed.stdout.split("\0") if path and (REPO / path).exists()}
     assert [p for p, size in sizes.items() if size > MAX_FILE_BYTES] == []
     assert sum(sizes.values()) <= BUDGET_BYTES
+
+
+def test_store_checkpoints_lists_the_newest_checkpoint_of_each_run_stopped_before_its_limit(tmp_path, monkeypatch):
+    """`harness store checkpoints`: the runs a clone could not resume without a committed checkpoint, each with
+    its newest one (--paths: the local files, for `git add -f`); finished runs are not listed."""
+    uri = uri_of(tmp_path)
+    config = RunConfig("random", "cartpole", 0, max_trials=4, eval_episodes=1)
+    run(config, tracker=MlflowTracker(uri))
+    stopped = InterruptedMlflow(uri, 3)
+    with pytest.raises(KeyboardInterrupt):
+        run(RunConfig("random", "cartpole", 1, max_trials=4, eval_episodes=1), tracker=stopped)
+    runs = {r.run_id: r for r in Store(uri).search(None)}
+    killed = [r for r in runs.values() if r.status == "KILLED"]
+    assert len(runs) == 2 and len(killed) == 1
+    saved = sorted(a.path for a in killed[0].artifacts("checkpoints"))
+    assert len(saved) >= 2  # not vacuous: several checkpoints stored before the interrupt, the newest is the one
+
+    listed = CliRunner().invoke(main, ["store", "checkpoints", "--tracking-uri", uri])
+    assert listed.exit_code == 0, listed.output
+    lines = [line for line in listed.output.splitlines() if line.startswith(killed[0].run_id[:8])]
+    assert len(lines) == 1 and saved[-1] in lines[0] and "KILLED" in lines[0]
+    assert "1 runs stopped before their limit" in listed.output and "1 have a checkpoint" in listed.output
+    finished = next(r for r in runs.values() if r.status == "FINISHED")
+    assert finished.run_id[:8] not in listed.output
+
+    monkeypatch.chdir(tmp_path)
+    only = CliRunner().invoke(main, ["store", "checkpoints", "--paths", "--tracking-uri", uri])
+    assert only.exit_code == 0, only.output
+    files = only.output.split()
+    assert len(files) == 1 and files[0].endswith(Path(saved[-1]).name) and (tmp_path / files[0]).is_file()

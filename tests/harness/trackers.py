@@ -1,9 +1,10 @@
-"""In-memory trackers that step in when a given trial's records are logged (for interruption tests)."""
+"""Trackers that step in when a given trial's records are logged (for interruption tests): in memory, and
+one on an MLflow store."""
 
 from __future__ import annotations
 
 from harness.errors import TrackingError
-from harness.tracking import MemoryTracker
+from harness.tracking import MemoryTracker, MlflowTracker
 
 
 class AtTrial(MemoryTracker):
@@ -53,3 +54,18 @@ class RefusesAt(AtTrial):
     def mended(self) -> RefusesAt:
         self.broken = False
         return self
+
+
+class InterruptedMlflow(MlflowTracker):
+    """An MLflow run interrupted (Ctrl-C) when trial ``step``'s metrics arrive: its policy and checkpoint
+    are stored, the run ends KILLED."""
+
+    def __init__(self, uri: str, step: int) -> None:
+        super().__init__(uri)
+        self.step = step
+
+    def log_metrics(self, metrics, step):
+        if step == self.step and "eval_success_rate" in metrics:
+            self.step = -1
+            raise KeyboardInterrupt
+        super().log_metrics(metrics, step)
