@@ -49,6 +49,11 @@ def _guarded(fn):
         except KeyboardInterrupt:
             click.echo("interrupted", err=True)
             sys.exit(130)
+        except BrokenPipeError:
+            # the reader of the output went away (`harness ... | head`): stop quietly, as Unix tools do
+            # (stdout pointed at /dev/null so that the interpreter's final flush does not fail again)
+            os.dup2(os.open(os.devnull, os.O_WRONLY), sys.stdout.fileno())
+            sys.exit(141)
         except click.exceptions.Exit:
             raise
         except click.ClickException:

@@ -33,11 +33,13 @@ class SilentProgress:
 
 def format_record(record: dict[str, Any], previous_wall: float | None = None, logs: Logs = Logs()) -> str:
     """``trial 3/10 | 12.0 s interaction | success 30% | eval cost 31.20 | J 25.1 | wall 42 s (trial 35 s: GP 3 s, policy 30 s, eval 2 s)``:
+    the run's limits where ``record`` has them (``max_trials``; ``budget_seconds``: ``12.0/2000 s interaction``),
     the metrics the learner shows (``logs.shown``, e.g. PILCO's J), the wall time since the run started,
     this trial's (since ``previous_wall``, the wall time at the last hand-over, when given) and where it
     went, as far as the learner (``logs.timings``) and the runner (the evaluation) log it."""
     parts = [f"trial {record['trial']}" + (f"/{record['max_trials']}" if record.get("max_trials") else "")]
-    parts.append(f"{record['interaction_seconds']:.1f} s interaction")
+    budget = record.get("budget_seconds")
+    parts.append(f"{record['interaction_seconds']:.1f}" + (f"/{budget:.0f}" if budget else "") + " s interaction")
     parts.append(f"success {100 * record['eval_success_rate']:.0f}%")
     parts.append(f"eval cost {record['eval_cost']:.2f}")
     for key, label in logs.shown:

@@ -364,7 +364,8 @@ def run(
                         store_checkpoint(trial)
                         checkpointed = True
                     tracker.log_metrics(_trial_metrics(record), step=trial)
-                progress.update({**record, "max_trials": prep.max_trials}, completed=trial if prep.max_trials else interaction.seconds)
+                progress.update({**record, "max_trials": prep.max_trials, "budget_seconds": prep.budget_seconds},
+                                completed=trial if prep.max_trials else interaction.seconds)
                 if result.solved:
                     solved_at = (interaction.seconds, len(interaction.episodes))
                     stop_reason = "solved"

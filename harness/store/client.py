@@ -115,7 +115,7 @@ class Store:
             self.client.log_batch(run_id, tags=[RunTag(k, str(v)[:5000]) for k, v in tags.items()])
 
     def log_metrics(self, run_id: str, metrics: Mapping[str, float | None], step: int = 0) -> None:
-        """Log the finite ``metrics`` at ``step`` (a missing or infinite value is left out, never a placeholder)."""
+        """Log the finite ``metrics`` at ``step`` (a missing or infinite value is left out, never logged as a stand-in number)."""
         import time
 
         from mlflow.entities import Metric

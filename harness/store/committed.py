@@ -103,8 +103,7 @@ def stopped_runs(runs: Sequence[RunReader]) -> list[StoppedRun]:
         if run.status == "FINISHED" or run.cell is None:
             continue
         files = {a.path: a for a in run.artifacts(layout.CHECKPOINTS) if not a.is_dir}
-        newest = list(trial_files(files, PREFIX).values())[-1:] or [None]
-        path = newest[0]
+        path = next(reversed(trial_files(files, PREFIX).values()), None)  # the newest trial's
         local = run.local_root / path if path is not None and run.local_root is not None else None
         out.append(StoppedRun(run.run_id, run.name, run.status, path, local, files[path].size if path is not None else 0))
     return out

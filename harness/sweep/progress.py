@@ -97,7 +97,8 @@ class RichSweepProgress:
         from harness.learner_logs import declared_logs
         from harness.progress import format_record
 
-        self.console.print(f"{label}: {format_record(record, logs=declared_logs(learner))}", soft_wrap=True)
+        line = format_record(record, record.get(PREVIOUS_WALL), logs=declared_logs(learner))
+        self.console.print(f"{label}: {line}", soft_wrap=True)
 
     def finish(self, result: SweepResult) -> None:
         if self._progress is not None:
@@ -108,13 +109,32 @@ class RichSweepProgress:
 TRIAL_POLL_SECONDS = 20.0
 
 
+#: key of a trial record from :class:`TrialWatcher`: the run's wall time at the trial before (for the trial's own)
+PREVIOUS_WALL = "previous_wall_seconds"
+
+
+def _limits(params: dict[str, str]) -> dict[str, float]:
+    """A run's ``max_trials`` and ``budget_seconds`` from its params (logged as text, ``"None"`` when unset)."""
+    limits = {}
+    for key in ("max_trials", "budget_seconds"):
+        try:
+            limits[key] = float(params[key])
+        except (KeyError, ValueError):
+            continue
+    if "max_trials" in limits:
+        limits["max_trials"] = int(limits["max_trials"])
+    return limits
+
+
 class TrialWatcher:
     """Reports each new trial of the sweep's running cells, read from the tracking store.
 
     Workers log every hand-over to their MLflow run; the driver already holds the store, so it
     reads the running children of the sweep's parents (``(experiment id, parent run id)``, one per
     task) every :data:`TRIAL_POLL_SECONDS` (the same for local and Ray workers, no channel to the
-    workers). A cell's trial number is the newest step of its ``interaction_seconds`` history.
+    workers). A cell's trial number is the newest step of its ``interaction_seconds`` history; its
+    record carries the run's limits (params ``max_trials``, ``budget_seconds``) and its wall time at the
+    trial before (:data:`PREVIOUS_WALL`), so that the line gives the trial's own wall time.
     """
 
     def __init__(self, store: Store, parents: Sequence[tuple[str, str]], poll_seconds: float = TRIAL_POLL_SECONDS) -> None:
@@ -136,7 +156,10 @@ class TrialWatcher:
                 if trial <= self._seen.get(run.run_id, 0):
                     continue
                 self._seen[run.run_id] = trial
-                record = {**run.metrics, "trial": trial}
+                record = {**run.metrics, "trial": trial, **_limits(run.params)}
+                previous = run.history(layout.WALL_SECONDS).get(trial - 1)
+                if previous is not None:
+                    record[PREVIOUS_WALL] = previous
                 if all(k in record for k in (layout.EVAL_SUCCESS_RATE, layout.EVAL_COST, layout.WALL_SECONDS)):
                     progress.trial(run.name, run.tags.get(layout.LEARNER_TAG, ""), record)
         except Exception:  # a busy or locked store must never stop the sweep; the next poll retries

@@ -3,7 +3,6 @@
 from __future__ import annotations
 
 import ast
-import os
 import subprocess
 import sys
 from pathlib import Path
@@ -48,6 +47,16 @@ def test_list_does_not_import_torch_or_mlflow():
     shown, loaded = heavy_modules_after(["list", "--options"])
     assert "pilco" in shown and "mc-pilco" in shown and "unicycle" in shown
     assert loaded == []
+
+
+def test_output_into_a_closed_pipe_stops_quietly():
+    """`harness list | head -1`: once the reader has gone, the command stops without an error message
+    (exit 141, as a Unix tool killed by SIGPIPE) instead of reporting an unexpected BrokenPipeError."""
+    proc = subprocess.Popen([*HARNESS, "list", "--options"], stdout=subprocess.PIPE, stderr=subprocess.PIPE)
+    proc.stdout.close()  # the reader goes before the first line is written
+    err = proc.stderr.read().decode()
+    assert proc.wait(timeout=60) == 141, err
+    assert err == ""
 
 
 def test_list_shows_plugins():

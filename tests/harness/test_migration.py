@@ -72,7 +72,7 @@ def test_an_older_harness_run_is_refused_then_migrated_and_resumes_exactly(tmp_p
         run(config, tracker=MlflowTracker(mlflow_uri), resume_run_id=run_id)
     assert client.get_run(run_id).info.status == "KILLED"  # still resumable, not left RUNNING
     refused = CliRunner().invoke(main, ["eval", run_id, "--episodes", "2", "--tracking-uri", mlflow_uri])
-    assert refused.exit_code == 2 and f"policy policy_trial003.pkl is in the harness's old pickled format" in refused.output
+    assert refused.exit_code == 2 and "policy policy_trial003.pkl is in the harness's old pickled format" in refused.output
     if learner == "pilco":
         from plugins.pilco.saved_run import SavedPilcoRun
 

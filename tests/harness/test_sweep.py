@@ -116,6 +116,8 @@ def test_trial_watcher_reports_each_new_trial_of_running_cells_once(mlflow_uri):
     parents = [(e, store.create_run(e, "sweep x", {})) for e in experiments]
     child = lambda parent, name: store.create_run(parent[0], name, {"mlflow.parentRunId": parent[1], "learner": "pilco"})  # noqa: E731
     running, done, other = child(parents[0], "pilco · a · s0"), child(parents[0], "pilco · a · s1"), child(parents[1], "pilco · b · s0")
+    store.log_params(running, {"max_trials": 10, "budget_seconds": None})  # as the runner logs a run's limits
+    store.log_params(other, {"max_trials": None, "budget_seconds": 2000.0})
 
     def log_trial(run_id, step, seconds):
         store.log_metrics(run_id, {"interaction_seconds": seconds, "eval_success_rate": 0.5, "eval_cost": 12.0, "wall_seconds": 7.0 * step,
@@ -128,14 +130,20 @@ def test_trial_watcher_reports_each_new_trial_of_running_cells_once(mlflow_uri):
     log_trial(other, 1, 4.0)
     seen = []
 
+    records = []
+
     class Recording(SilentSweepProgress):
         def trial(self, label, learner, record):
             seen.append((label, learner, record["trial"], record["interaction_seconds"]))
+            records.append(record)
 
     watcher = TrialWatcher(store, parents, poll_seconds=20.0)
     watcher.poll(Recording(), now=100.0)
     # the newest trial only, of the running children of both parents; finished children are not watched
     assert seen == [("pilco · a · s0", "pilco", 2, 8.0), ("pilco · b · s0", "pilco", 1, 4.0)]
+    # each record carries the run's limits and its wall time at the trial before (none before the first)
+    assert records[0]["max_trials"] == 10 and "budget_seconds" not in records[0] and records[0]["previous_wall_seconds"] == 7.0
+    assert records[1]["budget_seconds"] == 2000.0 and "max_trials" not in records[1] and "previous_wall_seconds" not in records[1]
     log_trial(running, 3, 12.0)
     watcher.poll(Recording(), now=110.0)  # within the poll interval: the store is not read
     assert len(seen) == 2
@@ -149,6 +157,10 @@ def test_trial_watcher_reports_each_new_trial_of_running_cells_once(mlflow_uri):
     record = {"trial": 3, "interaction_seconds": 12.0, "eval_success_rate": 0.5, "eval_cost": 12.0, "wall_seconds": 21.0, "J_after": 17.0}
     RichSweepProgress(console).trial("pilco · a · s0", "pilco", record)  # what PILCO declares it logs: J
     assert "pilco · a · s0: trial 3 | 12.0 s interaction | success 50% | eval cost 12.00 | J 17.00 | wall 21 s" in console.export_text()
+    RichSweepProgress(console).trial("pilco · a · s0", "pilco", records[2])  # the watcher's record: limits, the trial's own wall
+    assert "pilco · a · s0: trial 3/10 | 12.0 s interaction | success 50% | eval cost 12.00 | J 17.00 | wall 21 s (trial 7 s)" in console.export_text()
+    RichSweepProgress(console).trial("pilco · b · s0", "pilco", records[1])
+    assert "pilco · b · s0: trial 1 | 4.0/2000 s interaction |" in console.export_text()
 
 
 class _StoppedWhileRunning(sweep_site.InlinePool):
