@@ -21,6 +21,7 @@ import numpy as np
 
 from harness.errors import BudgetExhaustedError, InteractionError
 from harness.task import Episode, TaskSpec, check_action
+from harness.threads import stepping_threads
 
 
 class _EpisodeBuffer:
@@ -62,12 +63,13 @@ def run_episode(
     obs, info = env.reset(seed=seed)
     buffer = _EpisodeBuffer(np.asarray(obs, dtype=np.float64), _state_of(info, obs))
     limit = spec.horizon if max_steps is None else min(int(max_steps), spec.horizon)
-    for _ in range(limit):
-        action, _ = check_action(policy(np.asarray(obs, dtype=np.float64)), spec)
-        obs, reward, terminated, truncated, info = env.step(action)
-        _record(buffer, obs, reward, terminated, info, action)
-        if terminated or truncated:
-            break
+    with stepping_threads():
+        for _ in range(limit):
+            action, _ = check_action(policy(np.asarray(obs, dtype=np.float64)), spec)
+            obs, reward, terminated, truncated, info = env.step(action)
+            _record(buffer, obs, reward, terminated, info, action)
+            if terminated or truncated:
+                break
     return buffer.to_episode(spec)
 
 
@@ -185,10 +187,11 @@ class Interaction:
         """Run one full episode of ``policy`` (until termination, horizon or ``max_steps``)."""
         obs = self.reset()
         limit = self._spec.horizon if max_steps is None else min(int(max_steps), self._spec.horizon)
-        for _ in range(limit):
-            obs, _, terminated, truncated, _ = self.step(policy(obs))
-            if terminated or truncated:
-                break
+        with stepping_threads():
+            for _ in range(limit):
+                obs, _, terminated, truncated, _ = self.step(policy(obs))
+                if terminated or truncated:
+                    break
         self._finish_episode()
         return self._episodes[-1]
 

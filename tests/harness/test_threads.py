@@ -42,3 +42,27 @@ def test_torch_threads_restores_the_previous_setting() -> None:
     with threads.torch_threads(1):
         assert torch.get_num_threads() == 1
     assert torch.get_num_threads() == before
+
+
+def test_a_policy_is_stepped_on_one_thread_and_the_run_keeps_its_threads() -> None:
+    """Evaluation and counted episodes apply the policy with one torch thread (its per-step operations
+    are too small for threads); the run's own setting is back once the episode ends."""
+    from harness.interaction import Interaction, run_episode
+    from tests.harness import toy
+
+    task = toy.ToyReach()
+    seen: list[int] = []
+
+    def policy(observation):
+        seen.append(torch.get_num_threads())
+        return [0.0]
+
+    before = torch.get_num_threads()
+    try:
+        torch.set_num_threads(2)
+        run_episode(task.make_env(), task.spec, policy, seed=0)
+        Interaction(task.make_env(), task.spec).rollout(policy)
+        assert seen and set(seen) == {1}
+        assert torch.get_num_threads() == 2
+    finally:
+        torch.set_num_threads(before)
