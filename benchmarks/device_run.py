@@ -8,8 +8,8 @@ Usage::
 The run is :func:`harness.runner.run` with an in-memory tracker (nothing is stored, no checkpoint
 survives the process): it is for measuring what a trial costs on a device and what the first trials
 of a tuning seed do, not for reported results (those come from ``harness sweep`` into the store).
-Runs sharing one machine should say how many threads each may use (``--set learner.threads=N``): a run
-alone takes every core (:func:`harness.threads.run_threads`), and ``OMP_NUM_THREADS`` does not change that.
+Runs sharing one machine should say how many threads each may use (``OMP_NUM_THREADS=N`` or
+``--set learner.threads=N``): otherwise each takes every core (:func:`harness.threads.run_threads`).
 After every hand-over the script prints the harness's progress line and rewrites ``--out`` (markdown:
 a row per trial with the interaction, evaluation, the learner's J and where the trial's wall time
 went) and a JSON file beside it with every metric, so a run stopped by a time limit keeps its trials.

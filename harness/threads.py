@@ -1,6 +1,7 @@
 """How many CPU threads a run may use, decided by the harness rather than by hand.
 
-A ``harness bench`` run owns the machine: it may use every core it is allowed to run on. Cells of a
+A ``harness bench`` run owns the machine: it may use every core it is allowed to run on, unless the
+user limits it (``HARNESS_THREADS``, or ``OMP_NUM_THREADS`` as for any OpenMP program). Cells of a
 sweep run side by side, one per core, so each gets one thread: the sweep's worker sets
 :data:`ENV` to 1 before the learner is built (:func:`single_threaded`), and learners ask
 :func:`run_threads` instead of guessing. Learners that take a ``threads`` option let a user
@@ -30,13 +31,17 @@ def available_cores() -> int:
 
 
 def run_threads() -> int:
-    """Threads for the run in this process: ``$HARNESS_THREADS`` if set, else :func:`available_cores`.
+    """Threads for the run in this process: ``$HARNESS_THREADS`` if set, else a positive
+    ``$OMP_NUM_THREADS`` (its first entry: the user's limit for every OpenMP library, which torch
+    also follows by default), else :func:`available_cores`.
 
-    Raises ``ValueError`` naming the variable if it is set to something other than a positive integer.
+    Raises ``ValueError`` naming the variable if ``HARNESS_THREADS`` is set to something other than a
+    positive integer (an ``OMP_NUM_THREADS`` the harness cannot read is left to the libraries).
     """
     value = os.environ.get(ENV)
     if value is None or value == "":
-        return available_cores()
+        omp = os.environ.get("OMP_NUM_THREADS", "").split(",")[0].strip()
+        return int(omp) if omp.isdigit() and int(omp) > 0 else available_cores()
     try:
         threads = int(value)
     except ValueError:

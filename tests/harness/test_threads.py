@@ -12,9 +12,22 @@ from harness import threads
 
 def test_run_threads_defaults_to_the_cores_and_follows_the_variable(monkeypatch) -> None:
     monkeypatch.delenv(threads.ENV, raising=False)
+    monkeypatch.delenv("OMP_NUM_THREADS", raising=False)
     assert threads.run_threads() == threads.available_cores() == len(os.sched_getaffinity(0))
     monkeypatch.setenv(threads.ENV, "3")
     assert threads.run_threads() == 3
+
+
+@pytest.mark.parametrize("omp,expected", [("5", 5), ("4,2", 4), ("0", None), ("many", None), ("", None)])
+def test_a_users_omp_num_threads_limits_a_run_unless_harness_threads_says_otherwise(monkeypatch, omp, expected) -> None:
+    """Several hand-started runs on one machine, each with OMP_NUM_THREADS=3, take 3 threads each, not
+    every core each (four runs on a 16-core GPU machine once took 64); a value the harness cannot read
+    (0, a word) leaves the default."""
+    monkeypatch.delenv(threads.ENV, raising=False)
+    monkeypatch.setenv("OMP_NUM_THREADS", omp)
+    assert threads.run_threads() == (expected or threads.available_cores())
+    monkeypatch.setenv(threads.ENV, "2")
+    assert threads.run_threads() == 2
 
 
 @pytest.mark.parametrize("value", ["0", "-2", "two"])
