@@ -3,11 +3,14 @@ in the MLflow UI, what was left out.
 
 The repository commits ``results/runs/mlflow.db`` and, of ``results/runs/mlruns/``, the small files:
 summaries, settings and tables (``.json``, ``.md``, ``.csv``) and plots (``.png``): every run's
-``result.json``, its per-trial plots and settings, its ``harness eval`` summary and histogram, and the
-report's files on the comparison runs. The repository's ``.gitignore`` lets exactly these through
-(:data:`COMMITTED_SUFFIXES`). Policies, checkpoints, trained models and episode data stay on the machine
-that ran the run, but for the newest checkpoint of a run stopped before its limit, which is added by hand
-so that it can be resumed (``results/README.md``). The budget: no committed file over
+``result.json``, its per-trial settings, its ``harness eval`` summary and histogram, and the report's
+files on the comparison runs (:data:`COMMITTED_SUFFIXES`). Per-trial plots (``.png`` in a ``trialNNN/``
+folder, e.g. PILCO's ``prediction_trial007.png``, ~50 kB each) are not: at one per trial they filled
+the budget; a report copies the last one of each row's representative run into ``results/`` and onto its
+comparison run, which are committed. The repository's ``.gitignore`` lets exactly these through.
+Policies, checkpoints, trained models and episode data stay on the machine that ran the run, but for the
+newest checkpoint of a run stopped before its limit, which is added by hand so that it can be resumed
+(``results/README.md``). The budget: no committed file over
 :data:`MAX_FILE_BYTES`, all of them together under :data:`BUDGET_BYTES` (a test checks the repository).
 """
 
@@ -32,8 +35,12 @@ FILES_HEADING = "\n\n---\n**Files**"
 
 
 def committed(path: str) -> bool:
-    """Whether a run's artifact ``path`` is of a kind the committed store keeps."""
-    return Path(path).suffix in COMMITTED_SUFFIXES
+    """Whether a run's artifact ``path`` (relative to its artifact root, or longer) is of a kind the committed
+    store keeps: a :data:`COMMITTED_SUFFIXES` file that is not a per-trial plot."""
+    file = Path(path)
+    if file.suffix == ".png" and layout.trial_of_folder(file.parent.name) is not None:
+        return False
+    return file.suffix in COMMITTED_SUFFIXES
 
 
 def _megabytes(size: float) -> str:
@@ -51,7 +58,7 @@ def files_note(artifacts: Sequence[Artifact]) -> str:
         if not committed(a.path):
             folder = Path(a.path).parent.name
             left[f"{'trialNNN' if folder.startswith('trial') else folder or '.'}/*{Path(a.path).suffix}"].append(a)
-    text = (f"{FILES_HEADING} in the committed store (results/README.md: .json, .md, .csv and .png files): {len(kept)} of "
+    text = (f"{FILES_HEADING} in the committed store (results/README.md: .json, .md, .csv and .png files, per-trial plots not): {len(kept)} of "
             f"{len(artifacts)} ({_megabytes(sum(a.size for a in kept))} of {_megabytes(sum(a.size for a in artifacts))}).")
     if left:
         groups = ", ".join(f"`{name}` ({len(files)}, {_megabytes(sum(a.size for a in files))})" for name, files in sorted(left.items()))

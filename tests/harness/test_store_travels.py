@@ -93,7 +93,7 @@ def test_a_clone_with_only_the_committed_files_opens_every_link_and_says_what_it
     clone.mkdir()
     shutil.copy(original / "mlflow.db", clone / "mlflow.db")
     for path in (original / "mlruns").rglob("*"):
-        if path.is_file() and committed(path.name):
+        if path.is_file() and committed(path.relative_to(original).as_posix()):
             (clone / path.relative_to(original).parent).mkdir(parents=True, exist_ok=True)
             shutil.copy(path, clone / path.relative_to(original))
     assert CliRunner().invoke(main, ["store", "relocate", "--tracking-uri", uri_of(clone)]).exit_code == 0
@@ -123,7 +123,8 @@ def test_the_gitignore_lets_through_exactly_the_committed_kinds_of_file(tmp_path
     samples = [f"{artifacts}/{name}" for name in (
         "result.json", "policies/policy_trial001.pkl", "checkpoints/ckpt_trial003.pkl", "episodes/interaction_episodes.npz",
         "trial001/model_trial001.pt", "trial001/prediction_trial001.png", "trial001/gp_hyperparameters_trial001.json",
-        "test/test_summary.json", "test/test_final_distances.npy", "report/comparison_cartpole.md", "report/comparison_cartpole.csv")]
+        "test/test_summary.json", "test/test_final_distances.npy", "test/test_final_distance.png",
+        "report/comparison_cartpole.md", "report/comparison_cartpole.csv", "report/curves_cartpole.png", "trial012/other_plot.png")]
     for sample in [*samples, "mlruns/1/0123/artifacts/result.json", "mlflow.db"]:
         (tmp_path / sample).parent.mkdir(parents=True, exist_ok=True)
         (tmp_path / sample).write_text("x")
@@ -131,7 +132,8 @@ def test_the_gitignore_lets_through_exactly_the_committed_kinds_of_file(tmp_path
     git("init", "-q")
     git("add", "-A")
     added = set(git("diff", "--cached", "--name-only").split()) - {".gitignore"}
-    assert added == {s for s in samples if committed(s)} and len(added) == 6
+    assert added == {s for s in samples if committed(s)} and len(added) == 7
+    assert not any("/trial" in path and path.endswith(".png") for path in added)  # per-trial plots stay out
 
 
 def test_the_committed_store_keeps_within_its_budget():
