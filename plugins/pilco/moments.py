@@ -347,9 +347,13 @@ class MomentMatchingGP:
     (``T = (I - B_ab^-1) * inv_dd / 2``: ``I - B^-1`` first, which is exact where it cancels).
     """
 
-    def __init__(self, posterior: GPPosterior, kernel: str | None = None, threads: int = 1) -> None:
+    def __init__(self, posterior: GPPosterior, kernel: str | None = None, threads: int = 1,
+                 symmetric_pairs: bool = True) -> None:
         device = posterior.beta.device
         self.kernel = resolve_kernel(kernel, device)
+        #: with the fused kernel, form half the symmetric Q of each diagonal pair (False: the whole Q, as
+        #: before; kept for side-by-side benchmarks, benchmarks/ab_objective.py)
+        self.symmetric_pairs = bool(symmetric_pairs)
         self.threads = max(1, int(threads))
         if self.kernel in COMPILED_KERNELS:
             from plugins.pilco import fused
@@ -471,12 +475,16 @@ class MomentMatchingGP:
             kept = self.workspace.keep(slot, (p, n, n), left.dtype) if keeps else None
             # the fused kernel's own forward can save the contraction's gradients for the backward pass
             jac = {} if for_backward and self.kernel == "fused" and contract is self._contract_forward else None
+            # the diagonal pairs (a, a), first: Q symmetric, left's A = 2 Z T = right's B (2 T); the fused
+            # kernel forms half of each (plugins.pilco.fused.forward's ``symmetric``)
+            fused_here = self.kernel == "fused" and contract is self._contract_forward
+            sym = {"symmetric": 2.0 * W[e : 2 * e]} if fused_here and self.symmetric_pairs else {}
             if kept is not None:
                 quad, trace, q_wr = contract(left, right, self.beta_a, self.beta_b, inv_k, self.workspace, out=kept[0])
             elif jac is not None:
-                quad, trace, q_wr = contract(left, right, self.beta_a, self.beta_b, inv_k, self.workspace, jacobian=jac)
+                quad, trace, q_wr = contract(left, right, self.beta_a, self.beta_b, inv_k, self.workspace, jacobian=jac, **sym)
             else:
-                quad, trace, q_wr = contract(left, right, self.beta_a, self.beta_b, inv_k, self.workspace)
+                quad, trace, q_wr = contract(left, right, self.beta_a, self.beta_b, inv_k, self.workspace, **sym)
             saved = (m, S, b_inv, W, Z, ZW, q, lb, lbt, left, right, inv_k, q_wr, None if kept is None else kept[1], jac, M)
         V = quad[self.full].view(e, e) - torch.outer(M, M)
         if not mean_only:

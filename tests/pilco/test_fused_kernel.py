@@ -146,13 +146,75 @@ def test_results_do_not_depend_on_the_number_of_threads(threads, inline, saved) 
         assert torch.equal(a, b)
 
 
-@pytest.mark.parametrize("pairs,traced,threads", [(21, 6, 2), (55, 10, 2), (10, 4, 3), (1, 1, 2), (3, 0, 8)])
-def test_pair_groups_tile_the_pairs_with_balanced_work(pairs, traced, threads) -> None:
-    groups = fused.pair_groups(pairs, traced, threads)
+def _symmetric_inputs(num_outputs: int, n: int, d: int, seed: int):
+    """:func:`_contraction_inputs` with the diagonal pairs ``0 .. E - 1`` shaped as moment matching makes
+    them: ``A_p = B_p M_p`` (``M_p`` symmetric), ``u_p = v_p - c_p``, ``w_left[p] = w_right[p]``, so
+    that their ``Q_p`` is symmetric; returns the inputs and ``M (E, d, d)``."""
+    left, right, wl, wr, inv_k, g_quad, g_trace = _contraction_inputs(num_outputs, n, d, seed)
+    gen = torch.Generator().manual_seed(seed + 1)
+    e = num_outputs
+    half = 0.2 * torch.randn(e, d, d, generator=gen, dtype=DT)
+    M = half + half.mT
+    left[:e, :, :d] = right[:e, :, :d] @ M
+    left[:e, :, d] = right[:e, :, d + 1] - 0.3
+    wr[:e] = wl[:e]
+    return left, right, wl, wr, inv_k, g_quad, g_trace, M
+
+
+@pytest.mark.parametrize("num_outputs,n,d", [(1, 7, 1), (2, 8, 3), (3, 33, 9), (4, 20, 13), (1, 1, 2)])
+@pytest.mark.parametrize("traced", [True, False])
+def test_symmetric_pairs_match_the_torch_reference(num_outputs, n, d, traced) -> None:
+    """The kernels for symmetric pairs (upper triangle of ``Q`` only; ``G^T A`` as ``G B M``), against the
+    torch reference on the full ``Q``: forward sums with and without the saved gradients (those two
+    agree bit for bit), and every gradient the backward pass reads; odd and even ``n``, ``n = 1``."""
+    left, right, wl, wr, inv_k, g_quad, g_trace, M = _symmetric_inputs(num_outputs, n, d, seed=3 * n + d)
+    if not traced:
+        inv_k, g_trace = inv_k[:0], None
+    assert torch.allclose(torch.exp(left[0] @ right[0].mT), torch.exp(left[0] @ right[0].mT).T, rtol=1e-12)
+    ref = moments._contract_forward(left, right, wl, wr, inv_k, moments._Workspace())
+    jacobian = {}
+    got = fused.forward(left, right, wl, wr, inv_k, moments._Workspace(), inline=True, jacobian=jacobian, symmetric=M)
+    plain = fused.forward(left, right, wl, wr, inv_k, moments._Workspace(), inline=True, symmetric=M)
+    for a, b, c in zip(got, ref, plain):
+        assert torch.equal(a, c)
+        if b.numel():
+            assert _rel(a, b) < 1e-13
+    needs = (True, True, True, True, False)
+    want = moments._contract_backward(left, right, wl, wr, inv_k, ref[2], g_quad, g_trace, moments._Workspace(), needs)
+    grads = fused.backward(left, right, wl, wr, inv_k, got[2], g_quad, g_trace, moments._Workspace(), needs,
+                           inline=True, jacobian=jacobian)
+    used = {"left": [*range(d), d], "right": [*range(d), d + 1]}
+    assert _rel(grads[0][..., used["left"]], want[0][..., used["left"]]) < 1e-12
+    assert _rel(grads[1][..., used["right"]], want[1][..., used["right"]]) < 1e-12
+    assert _rel(grads[2], want[2]) < 1e-12 and _rel(grads[3], want[3]) < 1e-12
+
+
+@pytest.mark.parametrize("threads", [2, 3])
+def test_symmetric_pairs_do_not_depend_on_the_number_of_threads(threads) -> None:
+    left, right, wl, wr, inv_k, g_quad, g_trace, M = _symmetric_inputs(4, 21, 5, seed=11)
+    needs = (True, True, True, True, False)
+
+    def both(t):
+        jacobian = {}
+        quad, trace, q_wr = fused.forward(left, right, wl, wr, inv_k, moments._Workspace(), threads=t, inline=True,
+                                          jacobian=jacobian, symmetric=M)
+        grads = fused.backward(left, right, wl, wr, inv_k, q_wr, g_quad, g_trace, moments._Workspace(), needs,
+                               threads=t, inline=True, jacobian=jacobian)
+        return (quad, trace, q_wr, *grads[:4])
+
+    for a, b in zip(both(1), both(threads)):
+        assert torch.equal(a, b)
+
+
+@pytest.mark.parametrize("pairs,traced,threads,symmetric", [(21, 6, 2, 0), (55, 10, 2, 0), (10, 4, 3, 0), (1, 1, 2, 0),
+                                                          (3, 0, 8, 0), (21, 6, 2, 6), (55, 10, 2, 10), (3, 0, 2, 2)])
+def test_pair_groups_tile_the_pairs_with_balanced_work(pairs, traced, threads, symmetric) -> None:
+    groups = fused.pair_groups(pairs, traced, threads, symmetric)
     assert groups[0][0] == 0 and groups[-1][1] == pairs
     assert all(a < b for a, b in groups) and all(g[1] == h[0] for g, h in zip(groups, groups[1:]))
     assert len(groups) == min(threads, pairs)
-    cost = [sum(1.5 if q < traced else 1.0 for q in range(a, b)) for a, b in groups]
+    weight = [(1.5 if q < traced else 1.0) * (0.6 if q < symmetric else 1.0) for q in range(pairs)]
+    cost = [sum(weight[a:b]) for a, b in groups]
     assert max(cost) - min(cost) <= 1.5
 
 
@@ -166,7 +228,7 @@ def test_generated_kernels_are_cached_per_dimension(tmp_path, monkeypatch) -> No
     files = sorted(p.name for p in tmp_path.glob("qkernel_d2_*.py"))
     assert len(files) == 1 and module.__file__.endswith(files[0])
     text = (tmp_path / files[0]).read_text()
-    assert "s0_1 += g0 * b1" in text and all(f"def {name}(" in text for name in ("forward_q", "forward_jac", "backward_q"))
+    assert "s0_1 += g0 * b1" in text and all(f"def {name}(" in text for name in ("forward_q", "forward_jac", "forward_q_sym", "forward_jac_sym", "backward_q"))
     left, right, wl, wr, inv_k, g_quad, g_trace = _contraction_inputs(1, 4, 2, seed=0)
     q_wr = torch.zeros(1, 4, dtype=DT)
     fused.backward(left, right, wl, wr, inv_k, q_wr, g_quad, g_trace, moments._Workspace(), (True,) * 4 + (False,))
