@@ -6,7 +6,10 @@ Usage::
         [--configs "double-pendulum n=400 H=60" "unicycle n=300 H=40" "cart-pole full n=100" ...] [--rounds 12]
 
 ``--a`` and ``--b`` are keyword arguments of :class:`plugins.pilco.moments.MomentMatchingGP`
-(``kernel=fused``, ``symmetric_pairs=false``, ``threads=2``). Each configuration's objective is built
+(``kernel=fused``, ``symmetric_pairs=false``, ``threads=2``), and ``moments=PATH``: take the class from
+another checkout's ``plugins/pilco/moments.py`` (loaded under its own module name; what it imports
+comes from this checkout, so it must fit this checkout's kernels: for a change inside moment matching
+itself, e.g. ``--a moments=/tmp/old/plugins/pilco/moments.py``). Each configuration's objective is built
 once (``benchmarks/task_objectives.py`` for the real tasks, ``benchmarks/bench_objective.py`` for the
 cart-pole ones) and J + dJ is then timed ``--rounds`` times per side, alternating ``a b``, ``b a``, ...
 On a shared machine whose load changes by 10-30 % from minute to minute (this project's: two vCPUs
@@ -65,12 +68,33 @@ def build(config: str):
     return tasks.task_objective(*tasks.TASK_CONFIGS[config])
 
 
-def measure(config: str, sides: dict[str, dict], rounds: int) -> dict:
-    """Times J + dJ of ``config`` under each side's ``MomentMatchingGP`` settings, interleaved."""
+def moments_class(path: str | None):
+    """``MomentMatchingGP`` of this checkout (``path`` None) or of the ``moments.py`` at ``path``."""
+    if path is None:
+        from plugins.pilco.moments import MomentMatchingGP
+
+        return MomentMatchingGP
+    file = Path(path)
+    if not file.is_file():
+        raise SystemExit(f"moments={path}: no such file (give another checkout's plugins/pilco/moments.py)")
+    spec = importlib.util.spec_from_file_location(f"_ab_moments_{abs(hash(str(file.resolve())))}", file)
+    module = importlib.util.module_from_spec(spec)
+    spec.loader.exec_module(module)
     from plugins.pilco.moments import MomentMatchingGP
 
+    # a subclass of this checkout's class with every method of the other one: callers that check
+    # isinstance(..., MomentMatchingGP) (the rollout) take it as it is instead of wrapping it
+    members = {k: v for k, v in vars(module.MomentMatchingGP).items() if k not in ("__dict__", "__weakref__")}
+    return type("OtherMomentMatchingGP", (MomentMatchingGP,), members)
+
+
+def measure(config: str, sides: dict[str, dict], rounds: int) -> dict:
+    """Times J + dJ of ``config`` under each side's ``MomentMatchingGP`` settings, interleaved."""
     obj = build(config)
-    models = {name: MomentMatchingGP(obj.posterior, **kwargs) for name, kwargs in sides.items()}
+    models = {}
+    for name, kwargs in sides.items():
+        options = {k: v for k, v in kwargs.items() if k != "moments"}
+        models[name] = moments_class(kwargs.get("moments"))(obj.posterior, **options)
     theta = obj.get_flat()
     results, times = {}, {name: [] for name in sides}
     for name, model in models.items():  # warm-up (compiles the kernels) and each side's own result

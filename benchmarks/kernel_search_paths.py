@@ -9,7 +9,8 @@ The dynamics GP is fitted once on a stored run's data (as ``benchmarks/device_tr
 the run's settings and warm start); then the learner's policy search (L-BFGS-B within the task
 preset's budgets) runs from the same fresh controller several times, one torch thread each:
 
-* with each of ``--kernels`` (default: ``numba fused``), and
+* with each of ``--kernels`` (default: ``numba fused``; ``fused-whole`` is ``fused`` forming the whole ``Q`` of
+  the diagonal pairs, ``MomentMatchingGP(symmetric_pairs=False)``, as before it formed half), and
 * with the first kernel again from theta moved by one ulp per entry (random signs, fixed seed): the
   control. Kernels that round differently cannot agree more closely than this.
 
@@ -51,13 +52,19 @@ def fitted_posterior(data_path: Path, learner):
     return model.posterior(), settings["source"]
 
 
+#: ``--kernels`` name -> (``MomentMatchingGP`` kernel, its other keyword arguments)
+KERNELS = {"torch": ("torch", {}), "numba": ("numba", {}), "fused": ("fused", {}),
+           "fused-whole": ("fused", {"symmetric_pairs": False})}
+
+
 def one_search(learner, posterior, kernel: str, nudge: bool, seed: int) -> dict:
     """The preset's policy search from the fresh controller of ``seed`` with the dynamics GP's ``kernel``."""
     from plugins.pilco.moments import MomentMatchingGP
 
     controller = learner._new_controller(torch.Generator().manual_seed(seed))
     objective = device_trial.objective_for(learner, posterior, controller)
-    objective.dynamics = MomentMatchingGP(objective.posterior, kernel=kernel)
+    name, options = KERNELS[kernel]
+    objective.dynamics = MomentMatchingGP(objective.posterior, kernel=name, **options)
     if nudge:
         theta = objective.get_flat()
         signs = np.random.default_rng(0).choice([-1.0, 1.0], theta.shape)
@@ -100,7 +107,7 @@ def main(argv: list[str] | None = None) -> None:
     parser.add_argument("--data", type=Path, required=True, help="a .npz written by benchmarks/compare_gp_fit.py --extract")
     parser.add_argument("--task", required=True)
     parser.add_argument("--set", dest="sets", action="append", default=[], metavar="KEY=VALUE", help="task option")
-    parser.add_argument("--kernels", nargs="+", default=["numba", "fused"], choices=["torch", "numba", "fused"])
+    parser.add_argument("--kernels", nargs="+", default=["numba", "fused"], choices=sorted(KERNELS))
     parser.add_argument("--seed", type=int, default=0, help="the fresh controller's seed")
     parser.add_argument("--out", type=Path, default=None, help="markdown file (the figure goes beside it as .png)")
     args = parser.parse_args(argv)

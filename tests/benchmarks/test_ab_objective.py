@@ -24,3 +24,21 @@ def test_symmetric_pairs_against_whole_q_on_cartpole():
     assert m["rel_dJ"] > 0  # the two sides do run different code (half of Q against all of it)
     with pytest.raises(SystemExit, match="unknown configuration"):
         measure("cart-pole n=7", {"a": {}, "b": {}}, rounds=1)
+
+
+def test_a_side_can_take_moment_matching_from_another_file(tmp_path):
+    """``moments=PATH``: the class comes from that file (here a copy of this checkout's, so the same J and dJ),
+    as a subclass of this checkout's class, so the rollout takes it as it is; a missing file fails with the fix."""
+    from pathlib import Path
+
+    import plugins.pilco.moments as moments
+    from benchmarks.ab_objective import moments_class
+
+    copy = tmp_path / "moments.py"
+    copy.write_text(Path(moments.__file__).read_text())
+    other = moments_class(str(copy))
+    assert other is not moments.MomentMatchingGP and issubclass(other, moments.MomentMatchingGP)
+    m = measure("cart-pole full n=100", {"a": {"moments": str(copy)}, "b": {}}, rounds=1)
+    assert m["rel_J"] == 0.0 and m["rel_dJ"] == 0.0
+    with pytest.raises(SystemExit, match="no such file"):
+        moments_class(str(tmp_path / "missing.py"))
