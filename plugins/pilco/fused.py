@@ -35,8 +35,9 @@ them for constant columns whose gradient nobody reads. Here:
 * the diagonal pairs ``(a, a)`` (``forward``'s ``symmetric``) have a symmetric ``Q``, equal weights and
   ``A = B M``: ``forward_q_sym`` / ``forward_jac_sym`` form only its upper triangle (each element
   stands for its mirror too, the diagonal counts half), so half the ``exp``; their ``G^T A`` is
-  ``G B M``, a ``(n, d) x (d, d)`` product in the driver instead of a second sweep (a double-pendulum
-  diagonal pair 0.64 -> 0.36 ms; ``results/benchmarks/objective_gradient_before_after_symmetric_pairs.md``).
+  ``G B M``, a ``(n, d) x (d, d)`` product in the driver instead of a second sweep (a diagonal pair 1.5-1.7x
+  cheaper, about what an off-diagonal one costs: ``results/benchmarks/fused_pair_cost.md``; J + dJ 1.05-1.09x,
+  ``results/benchmarks/ab_objective_symmetric_pairs.md``).
 
 The backward kernel is generated per input dimension ``d``: its inner loop runs over ``j``
 (contiguous, vectorised by LLVM) with ``2 d`` multiply-add accumulators in registers, which needs
@@ -601,8 +602,8 @@ def _run(groups: list[tuple[int, int]], work) -> None:
 def pair_groups(num_pairs: int, num_traced: int, threads: int, num_symmetric: int = 0) -> list[tuple[int, int]]:
     """At most ``threads`` contiguous ranges covering ``0 .. num_pairs - 1`` with about equal work (a
     pair with a trace term, ``p < num_traced``, counts 1.5: it also reads ``inv_k``; a symmetric one,
-    ``p < num_symmetric``, 0.6 of that: the kernels form half its ``Q``; measured at the double pendulum's
-    size, 0.36 ms for a traced symmetric pair against 0.64 ms as before and 0.38 ms for an ordinary pair)."""
+    ``p < num_symmetric``, 0.6 of that: the kernels form half its ``Q``; a traced symmetric pair measured
+    0.9-1.1 times an ordinary one, ``results/benchmarks/fused_pair_cost.md``)."""
     groups = max(1, min(int(threads), num_pairs))
     index = np.arange(num_pairs)
     cost = np.cumsum(np.where(index < num_traced, 1.5, 1.0) * np.where(index < num_symmetric, 0.6, 1.0))
