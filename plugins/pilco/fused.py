@@ -272,6 +272,33 @@ _PAIR_START = '''        if p < ntrace:
             i1 = i0 + 1 if two else i0
 '''
 
+#: the saved gradients' sweeps both forward templates share (``.format``-ed with the columns a row runs
+#: over): the gradient of quad_p (row weights c0, c1) and, traced pairs, of trace_p
+_JAC_QUAD = '''{{zero_acc}}
+            su0 = 0.0
+            su1 = 0.0
+            for j in {cols}:
+                w = wr[p, j]
+                g0 = q0[j] * (c0 * w)
+                g1 = q1[j] * (c1 * w)
+{{body_g}}
+{{store_g}}
+            gu[p, i0] = su0
+            if two:
+                gu[p, i1] = su1'''
+
+_JAC_TRACE = '''{{zero_acc_h}}
+                su0 = 0.0
+                su1 = 0.0
+                for j in {cols}:
+                    g0 = q0[j] * inv_k[p, i0, j]
+                    g1 = q1[j] * {inv_k_i1}
+{{body_h}}
+{{store_h}}
+                hu[p, i0] = su0
+                if two:
+                    hu[p, i1] = su1'''
+
 _FORWARD = '''
 @njit(fastmath=FASTMATH, nogil=True, cache=True, pipeline_class=NoAliasCompiler)
 def {signature}:
@@ -310,33 +337,12 @@ def {signature}:
             c0 = wl[p, i0]
             c1 = wl[p, i1] if two else 0.0
 {load_a01}
-{zero_acc}
-            su0 = 0.0
-            su1 = 0.0
-            for j in range(n):
-                w = wr[p, j]
-                g0 = q0[j] * (c0 * w)
-                g1 = q1[j] * (c1 * w)
-{body_g}
-{store_g}
-            gu[p, i0] = su0
-            if two:
-                gu[p, i1] = su1
+''' + _JAC_QUAD.format(cols='range(n)') + '''
             for j in range(n):
                 gwr[p, j] += q0[j] * c0 + q1[j] * c1
             if p < ntrace:
                 t1 = 1.0 if two else 0.0
-{zero_acc_h}
-                su0 = 0.0
-                su1 = 0.0
-                for j in range(n):
-                    g0 = q0[j] * inv_k[p, i0, j]
-                    g1 = q1[j] * (t1 * inv_k[p, i1, j])
-{body_h}
-{store_h}
-                hu[p, i0] = su0
-                if two:
-                    hu[p, i1] = su1
+''' + _JAC_TRACE.format(cols='range(n)', inv_k_i1='(t1 * inv_k[p, i1, j])') + '''
 #JAC-END
         quad[p] = sq
         if p < ntrace:
@@ -366,8 +372,8 @@ def {signature}:
             q1[i0] = 0.0
             if two:
                 q1[i1] *= 0.5
-            w0 = wl[p, i0]
-            w1 = wl[p, i1]
+            c0 = wl[p, i0]
+            c1 = wl[p, i1]
             s0 = 0.0
             s1 = 0.0
             if p < ntrace:
@@ -377,7 +383,7 @@ def {signature}:
                     w = wr[p, j]
                     s0 += q0[j] * w
                     s1 += q1[j] * w
-                    q_wr[p, j] += q0[j] * w0 + q1[j] * w1
+                    q_wr[p, j] += q0[j] * c0 + q1[j] * c1
                     r0 += q0[j] * inv_k[p, i0, j]
                     r1 += q1[j] * inv_k[p, i1, j]
                 st += r0 + r1
@@ -386,38 +392,17 @@ def {signature}:
                     w = wr[p, j]
                     s0 += q0[j] * w
                     s1 += q1[j] * w
-                    q_wr[p, j] += q0[j] * w0 + q1[j] * w1
+                    q_wr[p, j] += q0[j] * c0 + q1[j] * c1
             q_wr[p, i0] += s0
-            sq += w0 * s0
+            sq += c0 * s0
             if two:
                 q_wr[p, i1] += s1
-                sq += w1 * s1
+                sq += c1 * s1
 #JAC-BEGIN
 {load_b01}
-{zero_acc}
-            su0 = 0.0
-            su1 = 0.0
-            for j in range(i0u, nu):
-                w = wr[p, j]
-                g0 = q0[j] * (w0 * w)
-                g1 = q1[j] * (w1 * w)
-{body_g}
-{store_g}
-            gu[p, i0] = su0
-            if two:
-                gu[p, i1] = su1
+""" + _JAC_QUAD.format(cols="range(i0u, nu)") + """
             if p < ntrace:
-{zero_acc_h}
-                su0 = 0.0
-                su1 = 0.0
-                for j in range(i0u, nu):
-                    g0 = q0[j] * inv_k[p, i0, j]
-                    g1 = q1[j] * inv_k[p, i1, j]
-{body_h}
-{store_h}
-                hu[p, i0] = su0
-                if two:
-                    hu[p, i1] = su1
+""" + _JAC_TRACE.format(cols="range(i0u, nu)", inv_k_i1="inv_k[p, i1, j]") + """
 #JAC-END
         quad[p] = 2.0 * sq
         if p < ntrace:

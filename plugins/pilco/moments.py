@@ -473,11 +473,11 @@ class MomentMatchingGP:
             # the fused kernel stores no Q, so it has none to keep for the backward pass
             keeps = slot is not None and self.kernel != "fused"
             kept = self.workspace.keep(slot, (p, n, n), left.dtype) if keeps else None
+            fused_here = self.kernel == "fused" and contract is self._contract_forward
             # the fused kernel's own forward can save the contraction's gradients for the backward pass
-            jac = {} if for_backward and self.kernel == "fused" and contract is self._contract_forward else None
+            jac = {} if for_backward and fused_here else None
             # the diagonal pairs (a, a), first: Q symmetric, left's A = 2 Z T = right's B (2 T); the fused
             # kernel forms half of each (plugins.pilco.fused.forward's ``symmetric``)
-            fused_here = self.kernel == "fused" and contract is self._contract_forward
             sym = {"symmetric": 2.0 * W[e : 2 * e]} if fused_here and self.symmetric_pairs else {}
             if kept is not None:
                 quad, trace, q_wr = contract(left, right, self.beta_a, self.beta_b, inv_k, self.workspace, out=kept[0])
