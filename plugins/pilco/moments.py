@@ -45,6 +45,10 @@ Implementation notes (all float64, vectorised over outputs and basis points):
   ``Q`` formed two rows at a time inside them, never stored; the default where numba is installed). They
   agree to round-off (J 1e-11, dJ 5e-8 relative on the double pendulum); ``threads`` > 1 runs
   groups of output pairs in parallel with the compiled kernels, with the same results.
+* With the fused kernel the glue around the contraction is compiled too (``compiled_glue``:
+  :meth:`MomentMatchingGP._compiled_factors` forms ``Z``, ``Z W`` and the kernel's factors in one sweep,
+  :meth:`MomentMatchingGP._backward_compiled` takes the kernel's saved gradients to ``m`` and ``S`` in
+  another where nothing else needs a gradient); tested against the torch operations to 1e-12.
 * A rollout whose gradient will be taken can keep each step's ``Q`` in a buffer of its own
   (:meth:`_Workspace.keep`, up to :data:`KEEP_Q_BYTES` per GP, default 0) so that the backward pass
   does not recompute it (one product and one ``exp`` per step); wherever a kept ``Q`` was
@@ -64,6 +68,7 @@ import math
 import os
 from functools import lru_cache
 
+import numpy as np
 import torch
 
 from plugins.pilco.kernels import cho_inverse, cholesky_checked
@@ -348,9 +353,14 @@ class MomentMatchingGP:
     """
 
     def __init__(self, posterior: GPPosterior, kernel: str | None = None, threads: int = 1,
-                 symmetric_pairs: bool = True) -> None:
+                 symmetric_pairs: bool = True, compiled_glue: bool = True) -> None:
         device = posterior.beta.device
         self.kernel = resolve_kernel(kernel, device)
+        #: with the fused kernel, form the kernel's factors in one compiled sweep (:meth:`_compiled_factors`)
+        #: and, where nothing but m and S needs a gradient, take the backward pass to them in another
+        #: (:meth:`_backward_compiled`); False: the torch operations (kept for benchmarks/ab_objective.py)
+        self.compiled_glue = bool(compiled_glue)
+        self._factor_constants = None
         #: with the fused kernel, form half the symmetric Q of each diagonal pair (False: the whole Q, as
         #: before; kept for side-by-side benchmarks, benchmarks/ab_objective.py)
         self.symmetric_pairs = bool(symmetric_pairs)
@@ -390,6 +400,7 @@ class MomentMatchingGP:
         self.w_coef = torch.cat([-torch.ones(e, d, d, dtype=dtype, device=device), half_inv_dd, half_inv_dd])
         self.w_offset = torch.cat([torch.zeros(e, d, d, dtype=dtype, device=device), self.eye.expand(2 * p, d, d)])
         self.first, self.second = first, second
+        self._pair_outputs_numpy = (first.cpu().numpy(), second.cpu().numpy())
         self.pair_outputs = torch.cat([first, second])  # (2P,) output of each pair group of Z
         self.beta = beta
         self.beta_a, self.beta_b = beta[first], beta[second]
@@ -443,9 +454,13 @@ class MomentMatchingGP:
         # W = [B_a^-1; T; T],  T = R^-1 S / 2 = D^-1 (I - B^-1) D^-1 / 2,  R = S (Lambda_a^-1 + Lambda_b^-1) + I
         W = (self.w_offset - b_inv[self.w_index]) * self.w_coef  # (G, d, d)
 
-        Z = torch.addcmul(self.X_z, self.scale_z, m, value=-1.0)  # (G, n, d), see the class docstring
-        ZW = torch.bmm(Z, W)  # (G, n, d): [B_a^-1 iL_a nu_i, Lambda_a^-1 nu_i T, Lambda_b^-1 nu_j T]
-        zwz = (Z * ZW).sum(-1)  # (G, n)
+        compiled = self.compiled_glue and self.kernel == "fused" and contract is self._contract_forward
+        if compiled:
+            Z, ZW, zwz, log_k, left, right, factors = self._compiled_factors(m, W, half_logdet)
+        else:
+            Z = torch.addcmul(self.X_z, self.scale_z, m, value=-1.0)  # (G, n, d), see the class docstring
+            ZW = torch.bmm(Z, W)  # (G, n, d): [B_a^-1 iL_a nu_i, Lambda_a^-1 nu_i T, Lambda_b^-1 nu_j T]
+            zwz = (Z * ZW).sum(-1)  # (G, n)
         nu_s, t = Z[:e], ZW[:e]
 
         # ---- mean and cross-covariance --------------------------------------------------------
@@ -457,13 +472,15 @@ class MomentMatchingGP:
         C = (lbt * self.scale_z[:e]).squeeze(1).T  # (d, E)
 
         # ---- second moments: Q for the pairs a <= b -------------------------------------------
-        log_k = torch.add(self.log_alpha2[:, None], (nu_s * nu_s).sum(-1), alpha=-0.5)  # (E, n)  log k_a(X_i, m)
-        # [u; v] with u = log_k[first] + zwz_a - 1/2 log|B_ab|,  v = log_k[second] + zwz_b  (2P, n)
-        uv = log_k[self.pair_outputs] + zwz[e:]
-        u = uv[:p] - half_logdet[e:, None]
-        # exponent_ij = 2 a_i^T T b_j + u_i + v_j = log Q_ij  (expanded bilinear form, one product)
-        left = torch.cat([2.0 * ZW[e : e + p], u[..., None], self.ones], dim=-1)  # (P, n, d + 2)
-        right = torch.cat([Z[e + p :], self.ones, uv[p:, :, None]], dim=-1)  # (P, n, d + 2)
+        if not compiled:
+            log_k = torch.add(self.log_alpha2[:, None], (nu_s * nu_s).sum(-1), alpha=-0.5)  # (E, n)  log k_a(X_i, m)
+            # [u; v] with u = log_k[first] + zwz_a - 1/2 log|B_ab|,  v = log_k[second] + zwz_b  (2P, n)
+            uv = log_k[self.pair_outputs] + zwz[e:]
+            u = uv[:p] - half_logdet[e:, None]
+            # exponent_ij = 2 a_i^T T b_j + u_i + v_j = log Q_ij  (expanded bilinear form, one product)
+            left = torch.cat([2.0 * ZW[e : e + p], u[..., None], self.ones], dim=-1)  # (P, n, d + 2)
+            right = torch.cat([Z[e + p :], self.ones, uv[p:, :, None]], dim=-1)  # (P, n, d + 2)
+            factors = {}
         inv_k = self.inv_k[:0] if mean_only else self.inv_k
         if contract is None:
             quad, trace = _ExpBilinearContraction.apply(left, right, self.beta_a, self.beta_b, inv_k, self.workspace)
@@ -482,9 +499,10 @@ class MomentMatchingGP:
             if kept is not None:
                 quad, trace, q_wr = contract(left, right, self.beta_a, self.beta_b, inv_k, self.workspace, out=kept[0])
             elif jac is not None:
-                quad, trace, q_wr = contract(left, right, self.beta_a, self.beta_b, inv_k, self.workspace, jacobian=jac, **sym)
+                quad, trace, q_wr = contract(left, right, self.beta_a, self.beta_b, inv_k, self.workspace, jacobian=jac,
+                                             **sym, **factors)
             else:
-                quad, trace, q_wr = contract(left, right, self.beta_a, self.beta_b, inv_k, self.workspace, **sym)
+                quad, trace, q_wr = contract(left, right, self.beta_a, self.beta_b, inv_k, self.workspace, **sym, **factors)
             saved = (m, S, b_inv, W, Z, ZW, q, lb, lbt, left, right, inv_k, q_wr, None if kept is None else kept[1], jac, M)
         V = quad[self.full].view(e, e) - torch.outer(M, M)
         if not mean_only:
@@ -500,6 +518,8 @@ class MomentMatchingGP:
         g_quad = gV.new_zeros(p).index_add_(0, self.full, gV.reshape(-1))
         g_trace = None if mean_only else -gV.diagonal()
         gM = gM - (gV + gV.T) @ M
+        if jac is not None and self.compiled_glue and self.kernel == "fused" and not any(need_c.values()):
+            return self._backward_compiled(saved, gM, gC, g_quad, g_trace, needs)
         grad_left, grad_right, g_beta_a, g_beta_b, g_inv_k = self._contract_backward(
             left, right, self.beta_a, self.beta_b, inv_k, q_wr, g_quad, g_trace, self.workspace,
             (True, True, need_c["beta_a"], need_c["beta_b"], need_c["inv_k"] and not mean_only),
@@ -528,14 +548,9 @@ class MomentMatchingGP:
         if needs[0]:
             grads["m"] = -(g_Z_sum * self.scale_z).sum((0, 1))
         if needs[1] or need_c["scale_outer"]:
-            # W = (w_offset - B^-1[w_index]) * w_coef;  B^-1 and 1/2 log|B| of B = scale_outer * S + I
-            g_binv = torch.zeros_like(b_inv).index_add_(0, self.w_index, g_W * self.w_coef, alpha=-1.0)
-            g_B = torch.baddbmm(0.5 * g_hl[:, None, None] * b_inv, b_inv @ g_binv, b_inv, alpha=-1.0)
+            g_B = self._grad_B(b_inv, g_W, g_hl)
             if needs[1]:
-                g_S = (g_B * self.scale_outer).sum(0)
-                # S enters through a Cholesky factorisation, which reads it as symmetric: return the
-                # symmetric gradient (torch's convention for linalg.cholesky, so both paths agree)
-                grads["S"] = 0.5 * (g_S + g_S.T)
+                grads["S"] = self._grad_S(g_B)
             if need_c["scale_outer"]:
                 grads["scale_outer"] = g_B * S
         if need_c["scale_z"]:
@@ -551,6 +566,66 @@ class MomentMatchingGP:
         grads["beta_a"], grads["beta_b"], grads["inv_k"] = g_beta_a, g_beta_b, g_inv_k
         out = [grads.get("m"), grads.get("S")]
         out += [grads.get(name) if need else None for name, need in need_c.items()]
+        return out
+
+    def _compiled_factors(self, m, W, half_logdet):
+        """``Z, ZW (G, n, d)``, ``zwz (G, n)``, ``log_k (E, n)``, the kernel's ``left, right (P, n, d + 2)`` and
+        its ``factors`` (``A``, ``Bt`` for :func:`plugins.pilco.fused.forward`) as the torch operations of
+        :meth:`_forward` make them, from one compiled sweep (:func:`plugins.pilco.fused.pair_factors`). ``Z``,
+        ``ZW`` and ``right`` are transposed views of arrays laid out with the basis points last."""
+        from plugins.pilco import fused
+
+        if self._factor_constants is None:  # the posterior's part, once (values only: the backward pass is by hand)
+            self._factor_constants = tuple(
+                t.detach().contiguous().numpy() for t in (self.X_z.transpose(1, 2), self.scale_z[:, 0], self.log_alpha2))
+        XzT, scale, log_alpha2 = self._factor_constants
+        e, p, d = self.num_outputs, self.num_pairs, self.input_dim
+        groups, n = XzT.shape[0], XzT.shape[2]
+        ZT, ZWT, zwz, log_k = np.empty((groups, d, n)), np.empty((groups, d, n)), np.empty((groups, n)), np.empty((e, n))
+        L, Rt, A, Bt = np.empty((p, n, d + 2)), np.empty((p, d + 2, n)), np.empty((p, n, d)), np.empty((p, d, n))
+        first, second = self._pair_outputs_numpy
+        fused.pair_factors(XzT, scale, m.detach().contiguous().numpy(), W.detach().contiguous().numpy(), log_alpha2,
+                           half_logdet.detach().contiguous().numpy(), first, second, ZT, ZWT, zwz, log_k, L, Rt, A, Bt)
+        t = torch.from_numpy
+        return t(ZT).mT, t(ZWT).mT, t(zwz), t(log_k), t(L), t(Rt).mT, {"factors": (A, Bt)}
+
+    def _grad_B(self, b_inv, g_W, g_hl):
+        """Gradient wrt ``B = scale_outer * S + I`` ``(E + P, d, d)`` from those wrt ``W (G, d, d)`` and
+        ``1/2 log|B|`` ``(E + P,)``; ``W = (w_offset - B^-1[w_index]) * w_coef``."""
+        g_binv = torch.zeros_like(b_inv).index_add_(0, self.w_index, g_W * self.w_coef, alpha=-1.0)
+        return torch.baddbmm(0.5 * g_hl[:, None, None] * b_inv, b_inv @ g_binv, b_inv, alpha=-1.0)
+
+    def _grad_S(self, g_B):
+        """Gradient wrt ``S`` from that wrt every ``B``. ``S`` enters through a Cholesky factorisation,
+        which reads it as symmetric: the symmetric gradient (torch's convention for linalg.cholesky,
+        so every path agrees)."""
+        g_S = (g_B * self.scale_outer).sum(0)
+        return 0.5 * (g_S + g_S.T)
+
+    def _backward_compiled(self, saved, gM, gC, g_quad, g_trace, needs):
+        """:meth:`_backward` where only ``m`` and ``S`` need gradients and the fused kernel saved the
+        contraction's (the dynamics GP during a policy search): :func:`plugins.pilco.fused.input_gradients`
+        takes them to ``W``, ``1/2 log|B|`` and the summed ``Z`` in one compiled sweep, without the
+        ``(G, n, d)`` temporaries or the contraction's ``(P, n, d + 2)`` gradients."""
+        from plugins.pilco import fused
+
+        m, S, b_inv, W, Z, ZW, q, lb, lbt, left, right, inv_k, q_wr, kept, jac, M = saved
+        e, p, d = self.num_outputs, self.num_pairs, self.input_dim
+        groups, n = Z.shape[0], Z.shape[1]
+        traced = inv_k.shape[0] if g_trace is not None else 0
+        gt = g_trace[:traced].contiguous().numpy() if traced else np.zeros(0)
+        w = (gC.T * self.scale_z[:e, 0]).contiguous()  # (E, d)  dL/dlbt
+        g_W, g_Z_sum = np.empty((groups, d, d)), np.empty((groups, d))
+        g_hl, g_lb, g_logk = np.empty(e + p), np.empty((e, n)), np.zeros((e, n))
+        first, second = self._pair_outputs_numpy
+        fused.input_gradients(Z.mT.numpy(), ZW.mT.numpy(), W.contiguous().numpy(), first, second, lb.numpy(), w.numpy(),
+                              gM.contiguous().numpy(), jac["gA"], jac["gu"], jac["gBv"], jac["hA"], jac["hu"], jac["hBv"],
+                              g_quad.numpy(), gt, g_W, g_Z_sum, g_hl, g_lb, g_logk)
+        out = [None] * (2 + len(_CONSTANTS))
+        if needs[0]:
+            out[0] = -(torch.from_numpy(g_Z_sum) * self.scale_z[:, 0]).sum(0)
+        if needs[1]:
+            out[1] = self._grad_S(self._grad_B(b_inv, torch.from_numpy(g_W), torch.from_numpy(g_hl)))
         return out
 
 

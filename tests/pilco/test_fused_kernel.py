@@ -294,3 +294,50 @@ def test_objective_is_the_same_with_either_kernel(task, options, n, horizon) -> 
         assert np.linalg.norm(g_n - g_t) <= max(2e-7 * np.linalg.norm(g_t), 0.1 * np.linalg.norm(g_ulp - g_t))
         assert np.linalg.norm(g_n - g_t) <= max(0.2 * np.linalg.norm(g_ulp - g_t), 1e-12 * np.linalg.norm(g_t))
         assert J_2 == J_n and np.array_equal(g_2, g_n)
+
+
+@pytest.mark.parametrize("num_outputs,n,d", [(1, 7, 1), (3, 20, 4), (6, 33, 9), (2, 1, 2)])
+@pytest.mark.parametrize("mean_only", [False, True])
+def test_compiled_backward_matches_the_torch_operations(num_outputs, n, d, mean_only) -> None:
+    """``MomentMatchingGP`` with its glue compiled (the kernel's factors by :func:`fused.pair_factors`, the
+    backward pass from the fused kernel's saved gradients to ``m`` and ``S`` by :func:`fused.input_gradients`)
+    against the torch operations they replace (``compiled_glue=False``): M, V, C and the gradients to 1e-12
+    relative, odd and even ``n``, ``n = 1``, with and without the trace term, and where only ``m``
+    or only ``S`` is asked for."""
+    from tests.pilco.random_gp import random_gaussian, random_posterior
+
+    gen = torch.Generator().manual_seed(31 * n + d)
+    post = random_posterior(num_outputs, n, d, gen)
+    m, S = random_gaussian(d, gen)
+    gM = torch.randn(num_outputs, generator=gen, dtype=DT)
+    gV = torch.randn(num_outputs, num_outputs, generator=gen, dtype=DT)
+    gC = torch.randn(d, num_outputs, generator=gen, dtype=DT)
+    no_constants = [False] * len(moments._CONSTANTS)
+    for needs in ([True, True], [True, False], [False, True]):
+        got, moments_of = [], []
+        for compiled in (True, False):
+            gp = moments.MomentMatchingGP(post, kernel="fused", compiled_glue=compiled)
+            out, saved = gp.forward(m, S, mean_only, slot=0)
+            moments_of.append(out)
+            got.append(gp.backward(saved, gM, gV, gC, mean_only, needs + no_constants))
+        for a, b in zip(*moments_of):  # V = w^T Q w - M^2 + alpha^2 - tr(...) cancels: 1e-12 as the gradients
+            assert _rel(a, b) < 1e-12
+        for a, b in zip(*got):
+            assert (a is None) == (b is None)
+            if a is not None:
+                assert _rel(a, b) < 1e-12
+
+
+def test_compiled_backward_is_skipped_where_the_posterior_needs_gradients() -> None:
+    """The RBF policy's posterior carries gradients to its parameters: its backward pass stays with the
+    torch operations (they give the gradients wrt the basis points that the compiled sweep does not)."""
+    from tests.pilco.random_gp import random_gaussian, random_posterior
+
+    gen = torch.Generator().manual_seed(5)
+    post = random_posterior(2, 9, 3, gen)
+    m, S = random_gaussian(3, gen)
+    gp = moments.MomentMatchingGP(post, kernel="fused")
+    (M, V, C), saved = gp.forward(m, S, False, slot=0)
+    needs = [True, True] + [name == "X_z" for name in moments._CONSTANTS]
+    grads = gp.backward(saved, torch.ones(2, dtype=DT), torch.ones(2, 2, dtype=DT), torch.ones(3, 2, dtype=DT), False, needs)
+    assert grads[2] is not None and grads[2].shape == gp.X_z.shape
