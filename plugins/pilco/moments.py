@@ -618,9 +618,10 @@ class MomentMatchingGP:
         g_W, g_Z_sum = np.empty((groups, d, d)), np.empty((groups, d))
         g_hl, g_lb, g_logk = np.empty(e + p), np.empty((e, n)), np.zeros((e, n))
         first, second = self._pair_outputs_numpy
-        fused.input_gradients(Z.mT.numpy(), ZW.mT.numpy(), W.contiguous().numpy(), first, second, lb.numpy(), w.numpy(),
-                              gM.contiguous().numpy(), jac["gA"], jac["gu"], jac["gBv"], jac["hA"], jac["hu"], jac["hBv"],
-                              g_quad.numpy(), gt, g_W, g_Z_sum, g_hl, g_lb, g_logk)
+        ZT, ZWT = (np.ascontiguousarray(t.mT.numpy()) for t in (Z, ZW))  # views of _compiled_factors' arrays: no copy
+        fused.input_gradients(ZT, ZWT, W.contiguous().numpy(), first, second, lb.numpy(), w.numpy(), gM.contiguous().numpy(),
+                              jac["gA"], jac["gu"], jac["gBv"], jac["hA"], jac["hu"], jac["hBv"], g_quad.numpy(), gt,
+                              g_W, g_Z_sum, g_hl, g_lb, g_logk)
         out = [None] * (2 + len(_CONSTANTS))
         if needs[0]:
             out[0] = -(torch.from_numpy(g_Z_sum) * self.scale_z[:, 0]).sum(0)
