@@ -73,6 +73,7 @@ import os
 import sys
 import threading
 from concurrent.futures import ThreadPoolExecutor
+from functools import lru_cache
 from pathlib import Path
 from types import ModuleType
 
@@ -793,17 +794,19 @@ def _run(groups: list[tuple[int, int]], work) -> None:
         future.result()
 
 
-def pair_groups(num_pairs: int, num_traced: int, threads: int, num_symmetric: int = 0) -> list[tuple[int, int]]:
+@lru_cache(maxsize=64)
+def pair_groups(num_pairs: int, num_traced: int, threads: int, num_symmetric: int = 0) -> tuple[tuple[int, int], ...]:
     """At most ``threads`` contiguous ranges covering ``0 .. num_pairs - 1`` with about equal work (a
     pair with a trace term, ``p < num_traced``, counts 1.5: it also reads ``inv_k``; a symmetric one,
     ``p < num_symmetric``, 0.6 of that: the kernels form half its ``Q``; a traced symmetric pair measured
-    0.9-1.1 times an ordinary one, ``results/benchmarks/fused_pair_cost.md``)."""
+    0.9-1.1 times an ordinary one, ``results/benchmarks/fused_pair_cost.md``). Cached: a rollout asks
+    for the same split at every step of both passes (0.1 ms of NumPy each time)."""
     groups = max(1, min(int(threads), num_pairs))
     index = np.arange(num_pairs)
     cost = np.cumsum(np.where(index < num_traced, 1.5, 1.0) * np.where(index < num_symmetric, 0.6, 1.0))
     cuts = [0] + [int(np.searchsorted(cost, cost[-1] * g / groups)) + 1 for g in range(1, groups)] + [num_pairs]
     cuts = sorted(set(min(max(c, 0), num_pairs) for c in cuts))
-    return [(a, b) for a, b in zip(cuts[:-1], cuts[1:]) if a < b]
+    return tuple((a, b) for a, b in zip(cuts[:-1], cuts[1:]) if a < b)
 
 
 def _block_size(block, n: int, itemsize: int) -> int:
