@@ -340,7 +340,7 @@ def input_gradients(ZT, ZWT, W, first, second, lb, w, gM, gA, gu, gBv, hA, hu, h
 
 
 @njit(fastmath=FASTMATH, nogil=True, cache=True, pipeline_class=NoAliasCompiler)
-def pair_factors(XzT, scale, m, W, log_alpha2, half_logdet, first, second, ZT, ZWT, zwz, log_k, L, Rt, A, Bt):
+def pair_factors(XzT, scale, m, W, log_alpha2, half_logdet, first, second, ZT, ZWT, zwz, log_k, L, Rt):
     """Moment matching's scaled differences and the fused kernel's factors in one compiled sweep
     (``moments.MomentMatchingGP._forward`` with the fused kernel).
 
@@ -354,8 +354,7 @@ def pair_factors(XzT, scale, m, W, log_alpha2, half_logdet, first, second, ZT, Z
 
     and for pair ``p`` (left group ``E + p``, right group ``E + P + p``) the kernel's ``left``
     ``L = [2 ZW_l, u, 1]`` ``(P, n, d + 2)``, ``right`` transposed ``Rt = [Z_r, 1, v]^T``
-    ``(P, d + 2, n)``, and their first ``d`` columns on their own, ``A (P, n, d)`` and ``Bt (P, d, n)``,
-    with ``u = log_k[first] + zwz_l - half_logdet[E + p]`` and ``v = log_k[second] + zwz_r``.
+    ``(P, d + 2, n)``, with ``u = log_k[first] + zwz_l - half_logdet[E + p]`` and ``v = log_k[second] + zwz_r``.
     """
     G, d, n = XzT.shape
     e = log_alpha2.shape[0]
@@ -391,15 +390,12 @@ def pair_factors(XzT, scale, m, W, log_alpha2, half_logdet, first, second, ZT, Z
         for k in range(d):
             for i in range(n):
                 Rt[pp, k, i] = ZT[gr, k, i]
-                Bt[pp, k, i] = ZT[gr, k, i]
         for i in range(n):
             Rt[pp, d, i] = 1.0
             Rt[pp, d + 1, i] = log_k[second[pp], i] + zwz[gr, i]
         for i in range(n):
             for k in range(d):
-                v = 2.0 * ZWT[gl, k, i]
-                L[pp, i, k] = v
-                A[pp, i, k] = v
+                L[pp, i, k] = 2.0 * ZWT[gl, k, i]
             L[pp, i, d] = log_k[first[pp], i] + zwz[gl, i] - hl
             L[pp, i, d + 1] = 1.0
 
@@ -854,7 +850,7 @@ def _symmetric_jacobian(j: dict, q_wr: np.ndarray, M: np.ndarray, first: int, la
 
 
 def forward(left, right, w_left, w_right, inv_k, workspace, out=None, threads: int = 1, block=1,
-            inline: bool = False, jacobian: dict | None = None, symmetric=None, factors=None):
+            inline: bool = False, jacobian: dict | None = None, symmetric=None):
     """``quad (P,)``, ``trace (E',)``, ``Q w_right (P, n)``; ``Q`` into ``out`` (kept) if given.
 
     ``left, right (P, n, d + 2)`` with ``Q_p = exp(left_p right_p^T)``, formed ``block`` pairs at a
@@ -867,10 +863,7 @@ def forward(left, right, w_left, w_right, inv_k, workspace, out=None, threads: i
     ``symmetric`` (with ``inline``): ``M (S, d, d)`` for pairs ``0 .. S - 1`` whose ``Q_p`` is symmetric,
     ``w_left[p] = w_right[p]``, ``inv_k[p]`` symmetric and ``left[p, :, :d] = right[p, :, :d] M_p``
     (moment matching's diagonal pairs ``(a, a)``: ``M = 2 T``). Their kernels form only the upper
-    triangle of ``Q`` (half the ``exp``), and their ``G^T A`` is ``G B M``, no product of its own.
-
-    ``factors`` (with ``jacobian``): ``A = left[..., :d]`` ``(P, n, d)`` and ``Bt = right[..., :d]^T``
-    ``(P, d, n)`` as contiguous arrays, if the caller has them (:func:`pair_factors`); else copied here."""
+    triangle of ``Q`` (half the ``exp``), and their ``G^T A`` is ``G B M``, no product of its own."""
     p, n = left.shape[0], left.shape[1]
     e = inv_k.shape[0]
     quad, trace, q_wr = np.empty(p), np.empty(e), np.empty((p, n))
@@ -886,8 +879,10 @@ def forward(left, right, w_left, w_right, inv_k, workspace, out=None, threads: i
         module = kernels(d)
         L, Rt = _numpy(left.contiguous()), _numpy(right.mT.contiguous())
         if jacobian is not None:
-            # A and Bt only feed forward_jac; the dict keeps just what the backward pass reads
-            A, Bt = factors if factors is not None else (np.ascontiguousarray(L[..., :d]), np.ascontiguousarray(Rt[:, :d]))
+            # forward_jac reads A = left[..., :d] and Bt = right[..., :d]^T by index, A[p, i, c] and Bt[p, c, j]
+            # with c < d, which are L's and Rt's own entries: no copies (both are only read; the kernels'
+            # no-alias promise concerns the arrays they write). The dict keeps just what the backward pass reads
+            A, Bt = L, Rt
             jacobian.update(gA=np.empty((p, n, d)), gu=np.empty((p, n)), gBv=np.empty((p, d + 1, n)), gwr=np.empty((p, n)),
                             hA=np.empty((e, n, d)), hu=np.empty((e, n)), hBv=np.empty((e, d + 1, n)))
             j = jacobian

@@ -456,7 +456,7 @@ class MomentMatchingGP:
 
         compiled = self.compiled_glue and self.kernel == "fused" and contract is self._contract_forward
         if compiled:
-            Z, ZW, zwz, log_k, left, right, factors = self._compiled_factors(m, W, half_logdet)
+            Z, ZW, zwz, log_k, left, right = self._compiled_factors(m, W, half_logdet)
         else:
             Z = torch.addcmul(self.X_z, self.scale_z, m, value=-1.0)  # (G, n, d), see the class docstring
             ZW = torch.bmm(Z, W)  # (G, n, d): [B_a^-1 iL_a nu_i, Lambda_a^-1 nu_i T, Lambda_b^-1 nu_j T]
@@ -480,7 +480,6 @@ class MomentMatchingGP:
             # exponent_ij = 2 a_i^T T b_j + u_i + v_j = log Q_ij  (expanded bilinear form, one product)
             left = torch.cat([2.0 * ZW[e : e + p], u[..., None], self.ones], dim=-1)  # (P, n, d + 2)
             right = torch.cat([Z[e + p :], self.ones, uv[p:, :, None]], dim=-1)  # (P, n, d + 2)
-            factors = {}
         inv_k = self.inv_k[:0] if mean_only else self.inv_k
         if contract is None:
             quad, trace = _ExpBilinearContraction.apply(left, right, self.beta_a, self.beta_b, inv_k, self.workspace)
@@ -499,10 +498,9 @@ class MomentMatchingGP:
             if kept is not None:
                 quad, trace, q_wr = contract(left, right, self.beta_a, self.beta_b, inv_k, self.workspace, out=kept[0])
             elif jac is not None:
-                quad, trace, q_wr = contract(left, right, self.beta_a, self.beta_b, inv_k, self.workspace, jacobian=jac,
-                                             **sym, **factors)
+                quad, trace, q_wr = contract(left, right, self.beta_a, self.beta_b, inv_k, self.workspace, jacobian=jac, **sym)
             else:
-                quad, trace, q_wr = contract(left, right, self.beta_a, self.beta_b, inv_k, self.workspace, **sym, **factors)
+                quad, trace, q_wr = contract(left, right, self.beta_a, self.beta_b, inv_k, self.workspace, **sym)
             saved = (m, S, b_inv, W, Z, ZW, q, lb, lbt, left, right, inv_k, q_wr, None if kept is None else kept[1], jac, M)
         V = quad[self.full].view(e, e) - torch.outer(M, M)
         if not mean_only:
@@ -569,10 +567,10 @@ class MomentMatchingGP:
         return out
 
     def _compiled_factors(self, m, W, half_logdet):
-        """``Z, ZW (G, n, d)``, ``zwz (G, n)``, ``log_k (E, n)``, the kernel's ``left, right (P, n, d + 2)`` and
-        its ``factors`` (``A``, ``Bt`` for :func:`plugins.pilco.fused.forward`) as the torch operations of
-        :meth:`_forward` make them, from one compiled sweep (:func:`plugins.pilco.fused.pair_factors`). ``Z``,
-        ``ZW`` and ``right`` are transposed views of arrays laid out with the basis points last."""
+        """``Z, ZW (G, n, d)``, ``zwz (G, n)``, ``log_k (E, n)`` and the kernel's ``left, right (P, n, d + 2)`` as
+        the torch operations of :meth:`_forward` make them, from one compiled sweep
+        (:func:`plugins.pilco.fused.pair_factors`). ``Z``, ``ZW`` and ``right`` are transposed views of arrays laid
+        out with the basis points last (``right``'s is the layout :func:`plugins.pilco.fused.forward` reads)."""
         from plugins.pilco import fused
 
         if self._factor_constants is None:  # the posterior's part, once (values only: the backward pass is by hand)
@@ -582,12 +580,12 @@ class MomentMatchingGP:
         e, p, d = self.num_outputs, self.num_pairs, self.input_dim
         groups, n = XzT.shape[0], XzT.shape[2]
         ZT, ZWT, zwz, log_k = np.empty((groups, d, n)), np.empty((groups, d, n)), np.empty((groups, n)), np.empty((e, n))
-        L, Rt, A, Bt = np.empty((p, n, d + 2)), np.empty((p, d + 2, n)), np.empty((p, n, d)), np.empty((p, d, n))
+        L, Rt = np.empty((p, n, d + 2)), np.empty((p, d + 2, n))
         first, second = self._pair_outputs_numpy
         fused.pair_factors(XzT, scale, m.detach().contiguous().numpy(), W.detach().contiguous().numpy(), log_alpha2,
-                           half_logdet.detach().contiguous().numpy(), first, second, ZT, ZWT, zwz, log_k, L, Rt, A, Bt)
+                           half_logdet.detach().contiguous().numpy(), first, second, ZT, ZWT, zwz, log_k, L, Rt)
         t = torch.from_numpy
-        return t(ZT).mT, t(ZWT).mT, t(zwz), t(log_k), t(L), t(Rt).mT, {"factors": (A, Bt)}
+        return t(ZT).mT, t(ZWT).mT, t(zwz), t(log_k), t(L), t(Rt).mT
 
     def _grad_B(self, b_inv, g_W, g_hl):
         """Gradient wrt ``B = scale_outer * S + I`` ``(E + P, d, d)`` from those wrt ``W (G, d, d)`` and
