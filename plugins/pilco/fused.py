@@ -72,6 +72,7 @@ import inspect
 import os
 import sys
 import threading
+from collections.abc import Sequence
 from concurrent.futures import ThreadPoolExecutor
 from functools import lru_cache
 from pathlib import Path
@@ -218,7 +219,7 @@ def _group_products(ZT, T, g, out):
 
 @njit(fastmath=FASTMATH, nogil=True, cache=True, pipeline_class=NoAliasCompiler)
 def input_gradients(ZT, ZWT, W, first, second, lb, w, gM, gA, gu, gBv, hA, hu, hBv, g_quad, g_trace,
-                    g_W, g_Z_sum, g_hl, g_lb, g_logk):
+                    g_W, g_Z_sum, g_hl, g_logk):
     """Moment matching's backward pass from the contraction's gradients to ``W`` and ``m`` in one sweep
     (``moments.MomentMatchingGP._backward`` where no basis point needs its gradient: the dynamics GP).
 
@@ -230,8 +231,8 @@ def input_gradients(ZT, ZWT, W, first, second, lb, w, gM, gA, gu, gBv, hA, hu, h
     ``jacobian``) and their weights ``g_quad (P,)``, ``g_trace (E',)``.
 
     Outputs (written): ``g_W (G, d, d)``, ``g_Z_sum (G, d)`` (the gradient wrt ``Z`` summed over the ``n``
-    basis points, all that ``m`` needs), ``g_hl (E + P,)`` (wrt half the log-determinants), ``g_lb (E, n)``;
-    ``g_logk (E, n)`` must be zero on entry. With the pairs' gradients ``g_uv`` (wrt ``u``, ``v``, here
+    basis points, all that ``m`` needs) and ``g_hl (E + P,)`` (wrt half the log-determinants);
+    ``g_logk (E, n)`` must be zero on entry (scratch: the pairs' gradients wrt each output's ``log k``). With the pairs' gradients ``g_uv`` (wrt ``u``, ``v``, here
     ``g_zwz``) and ``g_ZW`` (``2 G B`` on the left groups, ``lb w`` on the mean groups), the sums over ``i`` of::
 
         g_Z_i = 2 g_zwz_i ZW_i + g_ZW_i W (+ the right groups' G^T A, - g_logk Z on the mean groups)
@@ -245,6 +246,7 @@ def input_gradients(ZT, ZWT, W, first, second, lb, w, gM, gA, gu, gBv, hA, hu, h
     p = first.shape[0]
     nt = g_trace.shape[0]
     guv = np.empty(n)
+    g_lb = np.empty(n)
     T = np.empty((d, n))
     szw = np.empty(d)
     for pp in range(p):
@@ -311,14 +313,14 @@ def input_gradients(ZT, ZWT, W, first, second, lb, w, gM, gA, gu, gBv, hA, hu, h
             _group_products(ZT, T, g, g_W)
     for a in range(e):
         for i in range(n):
-            g_lb[a, i] = gM[a]
+            g_lb[i] = gM[a]
         for k in range(d):
             for i in range(n):
-                g_lb[a, i] += ZWT[a, k, i] * w[a, k]
+                g_lb[i] += ZWT[a, k, i] * w[a, k]
         hl = 0.0
         slb = 0.0
         for i in range(n):
-            glq = g_lb[a, i] * lb[a, i]
+            glq = g_lb[i] * lb[a, i]
             hl += glq
             guv[i] = -0.5 * glq
             slb += lb[a, i]
@@ -775,7 +777,7 @@ def kernels(d: int) -> ModuleType:
 _pools: dict[int, ThreadPoolExecutor] = {}
 
 
-def _run(groups: list[tuple[int, int]], work) -> None:
+def _run(groups: Sequence[tuple[int, int]], work) -> None:
     """``work(g, start, stop)`` for every group of pairs: inline for one group, else on a pool of
     ``len(groups)`` threads (each with single-threaded torch)."""
     if len(groups) == 1:

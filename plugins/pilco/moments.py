@@ -454,7 +454,9 @@ class MomentMatchingGP:
         # W = [B_a^-1; T; T],  T = R^-1 S / 2 = D^-1 (I - B^-1) D^-1 / 2,  R = S (Lambda_a^-1 + Lambda_b^-1) + I
         W = (self.w_offset - b_inv[self.w_index]) * self.w_coef  # (G, d, d)
 
-        compiled = self.compiled_glue and self.kernel == "fused" and contract is self._contract_forward
+        # the fused kernel through this object's own forward (not the autograd reference, contract=None)
+        fused_here = self.kernel == "fused" and contract is self._contract_forward
+        compiled = self.compiled_glue and fused_here
         if compiled:
             Z, ZW, zwz, log_k, left, right = self._compiled_factors(m, W, half_logdet)
         else:
@@ -489,7 +491,6 @@ class MomentMatchingGP:
             # the fused kernel stores no Q, so it has none to keep for the backward pass
             keeps = slot is not None and self.kernel != "fused"
             kept = self.workspace.keep(slot, (p, n, n), left.dtype) if keeps else None
-            fused_here = self.kernel == "fused" and contract is self._contract_forward
             # the fused kernel's own forward can save the contraction's gradients for the backward pass
             jac = {} if for_backward and fused_here else None
             # the diagonal pairs (a, a), first: Q symmetric, left's A = 2 Z T = right's B (2 T); the fused
@@ -516,7 +517,7 @@ class MomentMatchingGP:
         g_quad = gV.new_zeros(p).index_add_(0, self.full, gV.reshape(-1))
         g_trace = None if mean_only else -gV.diagonal()
         gM = gM - (gV + gV.T) @ M
-        if jac is not None and self.compiled_glue and self.kernel == "fused" and not any(need_c.values()):
+        if jac is not None and self.compiled_glue and not any(need_c.values()):  # jac: the fused kernel saved it
             return self._backward_compiled(saved, gM, gC, g_quad, g_trace, needs)
         grad_left, grad_right, g_beta_a, g_beta_b, g_inv_k = self._contract_backward(
             left, right, self.beta_a, self.beta_b, inv_k, q_wr, g_quad, g_trace, self.workspace,
@@ -614,12 +615,12 @@ class MomentMatchingGP:
         gt = g_trace[:traced].contiguous().numpy() if traced else np.zeros(0)
         w = (gC.T * self.scale_z[:e, 0]).contiguous()  # (E, d)  dL/dlbt
         g_W, g_Z_sum = np.empty((groups, d, d)), np.empty((groups, d))
-        g_hl, g_lb, g_logk = np.empty(e + p), np.empty((e, n)), np.zeros((e, n))
+        g_hl, g_logk = np.empty(e + p), np.zeros((e, n))
         first, second = self._pair_outputs_numpy
         ZT, ZWT = (np.ascontiguousarray(t.mT.numpy()) for t in (Z, ZW))  # views of _compiled_factors' arrays: no copy
         fused.input_gradients(ZT, ZWT, W.contiguous().numpy(), first, second, lb.numpy(), w.numpy(), gM.contiguous().numpy(),
                               jac["gA"], jac["gu"], jac["gBv"], jac["hA"], jac["hu"], jac["hBv"], g_quad.numpy(), gt,
-                              g_W, g_Z_sum, g_hl, g_lb, g_logk)
+                              g_W, g_Z_sum, g_hl, g_logk)
         out = [None] * (2 + len(_CONSTANTS))
         if needs[0]:
             out[0] = -(torch.from_numpy(g_Z_sum) * self.scale_z[:, 0]).sum(0)
