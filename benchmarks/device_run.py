@@ -13,12 +13,18 @@ Runs sharing one machine should say how many threads each may use (``OMP_NUM_THR
 After every hand-over the script prints the harness's progress line and rewrites ``--out`` (markdown:
 a row per trial with the interaction, evaluation, the learner's J and where the trial's wall time
 went) and a JSON file beside it with every metric, so a run stopped by a time limit keeps its trials.
+
+``--resume-checkpoint FILE`` continues a stored run from one of its checkpoints (``harness store checkpoints
+--paths`` lists them; the command must repeat the run's seed and options, as ``harness bench --resume``): a
+late trial's cost on a device without re-running the trials before it. The newest checkpoint is copied
+beside ``--out`` (``.ckpt``) after every trial.
 """
 
 from __future__ import annotations
 
 import argparse
 import json
+import shutil
 import sys
 import time
 from pathlib import Path
@@ -35,15 +41,16 @@ COLUMNS = {
     "interaction_seconds": "interaction s", "eval_cost": "eval cost", "eval_success_rate": "eval success",
     "J_before": "J before", "J_after": "J after", "model_train_seconds": "GP fit s",
     "policy_opt_seconds": "policy search s", "policy_steps": "search steps", "policy_evaluations": "evaluations",
-    "wall_seconds": "wall s (run)",
+    "trial_wall_seconds": "trial wall s", "wall_seconds": "wall s (run)",
 }
 
 
 class FileProgress:
     """A :class:`~harness.progress.ProgressReporter` that prints each hand-over and rewrites the report."""
 
-    def __init__(self, header: list[str], out: Path) -> None:
+    def __init__(self, header: list[str], out: Path, checkpoints: Path | None = None) -> None:
         self.header, self.out, self.records = header, out, []
+        self.checkpoints = checkpoints
         self.previous_wall: float | None = None
 
     def start(self, title: str, total: float | None, unit: str) -> None:
@@ -53,9 +60,17 @@ class FileProgress:
         from harness.progress import format_record
 
         print(format_record(record, self.previous_wall), flush=True)
+        row = dict(record)
+        if self.previous_wall is not None and record.get("wall_seconds") is not None:
+            row["trial_wall_seconds"] = record["wall_seconds"] - self.previous_wall
+        elif self.previous_wall is None and not self.records:
+            row["trial_wall_seconds"] = record.get("wall_seconds")  # a run's first trial starts at 0
         self.previous_wall = record.get("wall_seconds")
-        self.records.append(dict(record))
+        self.records.append(row)
         self.write()
+        newest = sorted(self.checkpoints.glob("*")) if self.checkpoints is not None and self.checkpoints.exists() else []
+        if newest:
+            shutil.copy2(newest[-1], self.out.with_suffix(".ckpt"))
 
     def finish(self, summary: str) -> None:
         print(summary, flush=True)
@@ -88,10 +103,16 @@ def main(argv: list[str] | None = None) -> None:
     parser.add_argument("--max-trials", type=int, default=None)
     parser.add_argument("--budget-seconds", type=float, default=None)
     parser.add_argument("--out", type=Path, required=True, help="markdown report (a .json with every metric beside it)")
+    parser.add_argument("--resume-checkpoint", type=Path, default=None, metavar="FILE",
+                        help="continue from this checkpoint of a run (same seed and options as the run)")
     args = parser.parse_args(argv)
 
+    from harness.checkpoint import checkpoint_name, load_checkpoint
+    from harness.errors import CheckpointError
+    from harness.interrupts import StopRequested
     from harness.options import parse_assignments
     from harness.runner import RunConfig, route_options, run
+    from harness.tracking import MemoryTracker
 
     learner_options, task_options = route_options(args.learner, args.task, parse_assignments(args.set))
 
@@ -109,7 +130,25 @@ def main(argv: list[str] | None = None) -> None:
         pass
     header += [f"Options: learner {learner_options or '{}'}, task {task_options or '{}'}. Nothing of this run is in the "
                "store: a tuning-seed measurement, not a reported result.", ""]
-    result = run(config, progress=FileProgress(header, args.out))
+    tracker, resume_id = MemoryTracker(), None
+    if args.resume_checkpoint is not None:
+        if not args.resume_checkpoint.is_file():
+            raise CheckpointError(f"no checkpoint file {args.resume_checkpoint}; list a run's with harness store checkpoints --paths")
+        # the in-memory tracker holds the file as a run's checkpoint artifact, which run() resumes from
+        checkpoint = load_checkpoint(args.resume_checkpoint)
+        trial = checkpoint.trial
+        tracker.run_id = resume_id = f"resumed from {args.resume_checkpoint.name}"
+        (tracker.root / "checkpoints").mkdir(parents=True)
+        shutil.copy2(args.resume_checkpoint, tracker.root / "checkpoints" / checkpoint_name(trial))
+        header[-2] += f" Resumed from `{args.resume_checkpoint.name}` after trial {trial} (not re-run)."
+    progress = FileProgress(header, args.out, tracker.root / "checkpoints")
+    if args.resume_checkpoint is not None and checkpoint.history:
+        progress.previous_wall = checkpoint.history[-1].get("wall_seconds")
+    try:
+        result = run(config, tracker=tracker, progress=progress, resume_run_id=resume_id)
+    except StopRequested as exc:
+        print(f"{exc}: continue with the same command and --resume-checkpoint {args.out.with_suffix('.ckpt')}", flush=True)
+        return
     print(f"solved: {result.solved}; interaction to success: {result.interaction_time_to_success}; "
           f"trials: {result.trials}; stop: {result.stop_reason}", flush=True)
 

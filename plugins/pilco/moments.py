@@ -400,7 +400,9 @@ class MomentMatchingGP:
         self.w_coef = torch.cat([-torch.ones(e, d, d, dtype=dtype, device=device), half_inv_dd, half_inv_dd])
         self.w_offset = torch.cat([torch.zeros(e, d, d, dtype=dtype, device=device), self.eye.expand(2 * p, d, d)])
         self.first, self.second = first, second
-        self._pair_outputs_numpy = (first.cpu().numpy(), second.cpu().numpy())
+        # from the host's cached copy: a copy off the device here would break a CUDA graph's capture (the
+        # policy's GP is built inside J)
+        self._pair_outputs_numpy = tuple(t.numpy() for t in _pair_indices(e)[:2])
         self.pair_outputs = torch.cat([first, second])  # (2P,) output of each pair group of Z
         self.beta = beta
         self.beta_a, self.beta_b = beta[first], beta[second]

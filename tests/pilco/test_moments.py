@@ -233,3 +233,23 @@ def test_hand_derived_backward_gradcheck() -> None:
     m, S = random_gaussian(3, gen)
     fn = lambda m, S: gp.predict(m, 0.5 * (S + S.T))  # noqa: E731
     assert torch.autograd.gradcheck(fn, (m.clone().requires_grad_(), S.clone().requires_grad_()))
+
+
+@pytest.mark.parametrize("posterior_grad", [False, True])
+def test_no_host_copy_on_a_device(posterior_grad: bool) -> None:
+    """On a device, building the moment-matching GP and its forward and backward passes copy nothing to or
+    from the host: a copy inside J breaks the CUDA graph's capture (the policy's GP is built inside J), and
+    CPU tests would not see it. The meta device (shapes, no data) refuses every such copy."""
+    E, n, d = 3, 7, 4
+    meta = dict(dtype=DT, device="meta")
+    fields = dict(inputs=(n, d), beta=(E, n), inv_k=(E, n, n), log_ell=(E, d), log_alpha=(E,), log_sigma=(E,))
+    posterior = GPPosterior(**{k: torch.empty(shape, **meta, requires_grad=posterior_grad and k != "inv_k")
+                               for k, shape in fields.items()})
+    gp = MomentMatchingGP(posterior, kernel="torch")
+    m, S = torch.empty(d, **meta, requires_grad=True), torch.empty(d, d, **meta, requires_grad=True)
+    M, V, C = gp.predict(m, S)
+    assert (M.shape, V.shape, C.shape) == ((E,), (E, E), (d, E))
+    (M.sum() + V.sum() + C.sum()).backward()
+    assert m.grad.shape == (d,) and S.grad.shape == (d, d)
+    if posterior_grad:
+        assert posterior.beta.grad.shape == (E, n) and posterior.inputs.grad.shape == (n, d)
