@@ -130,20 +130,19 @@ def main(argv: list[str] | None = None) -> None:
         pass
     header += [f"Options: learner {learner_options or '{}'}, task {task_options or '{}'}. Nothing of this run is in the "
                "store: a tuning-seed measurement, not a reported result.", ""]
-    tracker, resume_id = MemoryTracker(), None
+    tracker, resume_id, previous_wall = MemoryTracker(), None, None
     if args.resume_checkpoint is not None:
         if not args.resume_checkpoint.is_file():
             raise CheckpointError(f"no checkpoint file {args.resume_checkpoint}; list a run's with harness store checkpoints --paths")
         # the in-memory tracker holds the file as a run's checkpoint artifact, which run() resumes from
         checkpoint = load_checkpoint(args.resume_checkpoint)
-        trial = checkpoint.trial
         tracker.run_id = resume_id = f"resumed from {args.resume_checkpoint.name}"
         (tracker.root / "checkpoints").mkdir(parents=True)
-        shutil.copy2(args.resume_checkpoint, tracker.root / "checkpoints" / checkpoint_name(trial))
-        header[-2] += f" Resumed from `{args.resume_checkpoint.name}` after trial {trial} (not re-run)."
+        shutil.copy2(args.resume_checkpoint, tracker.root / "checkpoints" / checkpoint_name(checkpoint.trial))
+        header[-2] += f" Resumed from `{args.resume_checkpoint.name}` after trial {checkpoint.trial} (not re-run)."
+        previous_wall = checkpoint.history[-1].get("wall_seconds") if checkpoint.history else None
     progress = FileProgress(header, args.out, tracker.root / "checkpoints")
-    if args.resume_checkpoint is not None and checkpoint.history:
-        progress.previous_wall = checkpoint.history[-1].get("wall_seconds")
+    progress.previous_wall = previous_wall  # the first resumed trial's own wall is measured from the checkpoint's
     try:
         result = run(config, tracker=tracker, progress=progress, resume_run_id=resume_id)
     except StopRequested as exc:
