@@ -26,15 +26,19 @@ import argparse
 import json
 import shutil
 import sys
+import tempfile
 import time
 from pathlib import Path
-from typing import Any
+from typing import TYPE_CHECKING, Any
 
 ROOT = Path(__file__).resolve().parents[1]
 sys.path.insert(0, str(ROOT))
 
 from benchmarks.report_file import command_line, load_average, machine_line, write_report  # noqa: E402
 from harness.errors import exit_on_error  # noqa: E402
+
+if TYPE_CHECKING:
+    from harness.tracking import MemoryTracker
 
 #: metric -> column heading, in the table's order (a metric the learner does not log shows as "-")
 COLUMNS = {
@@ -48,10 +52,13 @@ COLUMNS = {
 class FileProgress:
     """A :class:`~harness.progress.ProgressReporter` that prints each hand-over and rewrites the report."""
 
-    def __init__(self, header: list[str], out: Path, checkpoints: Path | None = None) -> None:
+    def __init__(self, header: list[str], out: Path, tracker: MemoryTracker | None = None,
+                 previous_wall: float | None = None) -> None:
+        """``tracker``: the run's, whose newest checkpoint is copied beside ``out`` after every trial;
+        ``previous_wall``: the run's wall time at the checkpoint it resumed from (None: a new run)."""
         self.header, self.out, self.records = header, out, []
-        self.checkpoints = checkpoints
-        self.previous_wall: float | None = None
+        self.tracker = tracker
+        self.previous_wall = previous_wall
 
     def start(self, title: str, total: float | None, unit: str) -> None:
         print(f"{title}: up to {total} {unit}", flush=True)
@@ -68,9 +75,10 @@ class FileProgress:
         self.previous_wall = record.get("wall_seconds")
         self.records.append(row)
         self.write()
-        newest = sorted(self.checkpoints.glob("*")) if self.checkpoints is not None and self.checkpoints.exists() else []
-        if newest:
-            shutil.copy2(newest[-1], self.out.with_suffix(".ckpt"))
+        stored = self.tracker.list_artifacts("checkpoints") if self.tracker is not None else []
+        if stored:  # checkpoint_name() pads the trial: the last name is the newest
+            fetched = self.tracker.fetch_artifact(stored[-1], Path(tempfile.mkdtemp(prefix="device-run-")))
+            shutil.move(fetched, self.out.with_suffix(".ckpt"))
 
     def finish(self, summary: str) -> None:
         print(summary, flush=True)
@@ -134,15 +142,16 @@ def main(argv: list[str] | None = None) -> None:
     if args.resume_checkpoint is not None:
         if not args.resume_checkpoint.is_file():
             raise CheckpointError(f"no checkpoint file {args.resume_checkpoint}; list a run's with harness store checkpoints --paths")
-        # the in-memory tracker holds the file as a run's checkpoint artifact, which run() resumes from
+        # the in-memory tracker holds the file as a run's checkpoint artifact (under the runner's name for its
+        # trial), which run() resumes from
         checkpoint = load_checkpoint(args.resume_checkpoint)
-        tracker.run_id = resume_id = f"resumed from {args.resume_checkpoint.name}"
-        (tracker.root / "checkpoints").mkdir(parents=True)
-        shutil.copy2(args.resume_checkpoint, tracker.root / "checkpoints" / checkpoint_name(checkpoint.trial))
+        resume_id = tracker.start("", f"resumed from {args.resume_checkpoint.name}", params={}, tags={})
+        staged = Path(tempfile.mkdtemp(prefix="device-run-")) / checkpoint_name(checkpoint.trial)
+        tracker.log_artifact(Path(shutil.copy2(args.resume_checkpoint, staged)), "checkpoints")
         header[-2] += f" Resumed from `{args.resume_checkpoint.name}` after trial {checkpoint.trial} (not re-run)."
+        # the first resumed trial's own wall is measured from the checkpoint's
         previous_wall = checkpoint.history[-1].get("wall_seconds") if checkpoint.history else None
-    progress = FileProgress(header, args.out, tracker.root / "checkpoints")
-    progress.previous_wall = previous_wall  # the first resumed trial's own wall is measured from the checkpoint's
+    progress = FileProgress(header, args.out, tracker, previous_wall)
     try:
         result = run(config, tracker=tracker, progress=progress, resume_run_id=resume_id)
     except StopRequested as exc:

@@ -52,17 +52,22 @@ def multiply_adds(num_outputs: int, n: int, m: int, d: int) -> dict[str, float]:
     return {k: v * num_outputs for k, v in per_output.items()}
 
 
+def cpu_times(f, repeats: int) -> list[float]:
+    """CPU seconds of ``repeats`` calls of ``f()`` after one warm-up call."""
+    f()
+    times = []
+    for _ in range(repeats):
+        start = time.process_time()
+        f()
+        times.append(time.process_time() - start)
+    return times
+
+
 def gemm_rate(num_outputs: int, n: int, m: int, repeats: int = 5) -> float:
     """Multiply-adds per CPU second of ``(E, M, n) @ (E, n, M)``, the evaluation's own dense product (median)."""
     a = torch.randn(num_outputs, m, n, dtype=torch.float64)
     b = torch.randn(num_outputs, n, m, dtype=torch.float64)
-    torch.bmm(a, b)
-    times = []
-    for _ in range(repeats):
-        start = time.process_time()
-        torch.bmm(a, b)
-        times.append(time.process_time() - start)
-    return num_outputs * m * m * n / statistics.median(times)
+    return num_outputs * m * m * n / statistics.median(cpu_times(lambda: torch.bmm(a, b), repeats))
 
 
 def main(argv: list[str] | None = None) -> None:
@@ -80,12 +85,7 @@ def main(argv: list[str] | None = None) -> None:
     inputs = (t("x"), t("y"), t("pseudo_inputs"), t("log_ell"), t("log_alpha"), t("log_sigma"))
     (n, d), num_outputs, m = inputs[0].shape, inputs[1].shape[1], inputs[2].shape[0]
 
-    fitc_nll_and_pseudo_gradient(*inputs)  # warm-up
-    times = []
-    for _ in range(args.repeats):
-        start = time.process_time()
-        fitc_nll_and_pseudo_gradient(*inputs)
-        times.append(time.process_time() - start)
+    times = cpu_times(lambda: fitc_nll_and_pseudo_gradient(*inputs), args.repeats)
     seconds = statistics.median(times)
 
     from torch.profiler import ProfilerActivity, profile

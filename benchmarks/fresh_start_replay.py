@@ -21,6 +21,8 @@ import argparse
 import sys
 from pathlib import Path
 
+import numpy as np
+
 ROOT = Path(__file__).resolve().parents[1]
 sys.path.insert(0, str(ROOT))
 
@@ -29,10 +31,12 @@ from harness.errors import HarnessError, exit_on_error  # noqa: E402
 
 
 def fires(J: dict[int, float], predicted: dict[int, float], episodes_before: dict[int, float],
-          episode_costs: list[float], tol: float) -> list[int]:
+          episode_costs: list[np.ndarray], tol: float, horizon: dict[int, float] | None = None) -> list[int]:
     """Trials ``k`` at which :func:`~plugins.pilco.learner.stalled` is true: ``J[k]`` against ``J[k-1]``, and the
     cost of policy ``k-1``'s episode (the newest of the ``episodes_before[k]`` the learner had at trial ``k``)
-    against ``predicted[k-1]``. ``episode_costs[i]``: episode ``i``'s cost over the predicted steps."""
+    against ``predicted[k-1]``. ``episode_costs[i]``: episode ``i``'s per-step costs, summed over the steps the
+    prediction covered (``horizon[k-1]``, the planning horizon it was made with; all steps without it), as the
+    learner's own ``_realised_sum`` does."""
     from plugins.pilco.learner import stalled
 
     out = []
@@ -42,7 +46,8 @@ def fires(J: dict[int, float], predicted: dict[int, float], episodes_before: dic
         index = int(episodes_before[k]) - 1
         if not 0 <= index < len(episode_costs):
             continue
-        if stalled(J[k], J[k - 1], predicted[k - 1], episode_costs[index], tol):
+        steps = int(horizon[k - 1]) if horizon and k - 1 in horizon else None
+        if stalled(J[k], J[k - 1], predicted[k - 1], float(np.sum(episode_costs[index][:steps])), tol):
             out.append(k)
     return out
 
@@ -55,8 +60,6 @@ def main(argv: list[str] | None = None) -> None:
     parser.add_argument("--out", type=Path, default=None)
     args = parser.parse_args(argv)
 
-    import numpy as np
-
     from harness.evaluation import SOLVED_FRACTION
     from harness.store.client import Store
 
@@ -65,21 +68,19 @@ def main(argv: list[str] | None = None) -> None:
     for sweep in args.sweep:
         for parent in store.sweep_parents(sweep):
             for run in sorted(store.children(parent), key=lambda r: r.name):
-                if run.role != "cell" or not run.history("J_after"):
+                J = run.history("J_after") if run.role == "cell" else {}
+                if not J:
                     continue
-                J, predicted = run.history("J_after"), run.history("predicted_cost")
-                before = run.history("interaction_episodes")
-                horizon = run.history("planning_horizon")
-                steps = int(max(horizon.values())) if horizon else None
+                predicted, before = run.history("predicted_cost"), run.history("interaction_episodes")
                 try:
-                    costs = [float(np.sum(e.costs[:steps])) for e in run.episodes()]
+                    costs = [e.costs for e in run.episodes()]
                 except HarnessError:  # a run whose episodes are not stored (one superseded before they were)
                     rows.append((sweep, run.name, run.status, len(J), None, None))
                     continue
-                success = run.history("eval_success_rate")
+                horizon, success = run.history("planning_horizon"), run.history("eval_success_rate")
                 solved_at = next((k for k, v in sorted(success.items()) if v >= SOLVED_FRACTION), None) if run.solved else None
                 rows.append((sweep, run.name, run.status, len(J), solved_at,
-                             [fires(J, predicted, before, costs, tol) for tol in args.tol]))
+                             [fires(J, predicted, before, costs, tol, horizon) for tol in args.tol]))
 
     lines = ["# The fresh-start rule replayed on runs made without it", "",
              f"Command: `{command_line(__file__, argv)}`  ", "",
