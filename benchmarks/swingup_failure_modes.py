@@ -54,6 +54,15 @@ def wilson_interval(successes: int, n: int, z: float = 1.96) -> tuple[float, flo
     return (max(0.0, centre - half), min(1.0, centre + half))
 
 
+def add_test_arguments(parser: argparse.ArgumentParser) -> None:
+    """The options of a benchmark that tests a stored run's policies on the real task: ``--episodes``,
+    ``--seed`` (of the test episodes' initial states), ``--tracking-uri``, ``--out``."""
+    parser.add_argument("--episodes", type=int, default=100)
+    parser.add_argument("--seed", type=int, default=777, help="seed of the test episodes' initial states")
+    parser.add_argument("--tracking-uri", default=None)
+    parser.add_argument("--out", type=Path, default=None, help="markdown file (default: print only)")
+
+
 def outcome(distances: np.ndarray, radius: float, solved: bool) -> str:
     """The class of one episode from its per-step tip distances ``(T,)`` (m) and the task's verdict."""
     if solved:
@@ -88,10 +97,7 @@ def main(argv: list[str] | None = None) -> None:
     parser = argparse.ArgumentParser(description=__doc__.splitlines()[0])
     parser.add_argument("--runs", nargs="+", required=True)
     parser.add_argument("--trials", type=int, nargs="+", required=True)
-    parser.add_argument("--episodes", type=int, default=100)
-    parser.add_argument("--seed", type=int, default=777, help="seed of the test episodes' initial states")
-    parser.add_argument("--tracking-uri", default=None)
-    parser.add_argument("--out", type=Path, default=None, help="markdown file (default: print only)")
+    add_test_arguments(parser)
     args = parser.parse_args(argv)
     torch.set_num_threads(1)
     start = time.perf_counter()
