@@ -3,7 +3,7 @@
 Usage::
 
     OMP_NUM_THREADS=1 python benchmarks/plateau_search_check.py RUN_ID [--trial K] [--fresh 3] [--budgets 1] \\
-        [--planning-horizon H] [--episodes 100] [--seed 777] [--tracking-uri URI] [--out FILE]
+        [--set planning_horizon=100 ...] [--episodes 100] [--seed 777] [--tracking-uri URI] [--out FILE]
 
 A PILCO run whose evaluation cost has stopped falling (the double pendulum's tuning seeds sit at
 44-50 of 60 for twenty trials) is stuck either because each policy search ends in a local optimum of
@@ -23,9 +23,10 @@ kernel; :class:`plugins.pilco.learner.Pilco` built from the run's params) from s
   them in a row (each search continuing from the last: where a fresh start converges), with J after
   each.
 
-``--planning-horizon H`` replays every search with J over ``H`` predicted steps instead of the run's
-own (the real test episodes keep the task's horizon): would planning further ahead have moved a stuck
-run's policy, under the same model, towards one that succeeds?
+``--set KEY=VALUE`` replays every search with a learner option changed, e.g. ``planning_horizon=100``
+(J over 100 predicted steps; the real test episodes keep the task's horizon) or ``cost_width=1.0``
+(the planning cost's width): would planning differently have moved a stuck run's policy, under the
+same model, towards one that succeeds?
 
 Each policy found (and the run's own trial-``K`` policy) is then run on ``--episodes`` test
 episodes of the real task from the same initial states: success rate (Wilson 95 % interval) and
@@ -50,6 +51,7 @@ from benchmarks.report_file import command_line, machine_line, write_report  # n
 from benchmarks.swingup_failure_modes import add_test_arguments, wilson_interval  # noqa: E402
 from harness.errors import CheckpointError, exit_on_error  # noqa: E402
 from harness.evaluation import Evaluator  # noqa: E402
+from harness.options import parse_assignments  # noqa: E402
 from harness.seeding import derive_seeds  # noqa: E402
 from plugins.pilco.objective import PolicyObjective  # noqa: E402
 from plugins.pilco.policy import PilcoPolicy  # noqa: E402
@@ -71,10 +73,11 @@ class Row:
     J_budgets: tuple[float, ...] = ()
 
 
-def learner_for(run: SavedPilcoRun):
-    """The run's learner as the run built it: its recorded ``learner.*`` options and derived seed."""
+def learner_for(run: SavedPilcoRun, changes: dict[str, str] | None = None):
+    """The run's learner as the run built it (its recorded ``learner.*`` options and derived seed), with the
+    options in ``changes`` replaced."""
     options = {k[len("learner."):]: v for k, v in run.params.items() if k.startswith("learner.") and v != "None"}
-    return run.learner_cls(run.task.spec, options, seed=derive_seeds(int(run.params["seed"]))["learner"])
+    return run.learner_cls(run.task.spec, {**options, **(changes or {})}, seed=derive_seeds(int(run.params["seed"]))["learner"])
 
 
 def objective_for(learner, controller, model, horizon: int) -> PolicyObjective:
@@ -86,15 +89,16 @@ def objective_for(learner, controller, model, horizon: int) -> PolicyObjective:
 
 
 def check(run: SavedPilcoRun, trial: int, fresh: int, evaluator: Evaluator, log=print, budgets: int = 1,
-          planning_horizon: int | None = None) -> tuple[list[Row], int, float]:
+          changes: dict[str, str] | None = None) -> tuple[list[Row], int, float]:
     """The rows of the table for ``trial`` of ``run`` (see the module docstring; fresh starts get ``budgets``
-    searches in a row; J over ``planning_horizon`` steps if given, else the run's own horizon at that trial),
+    searches in a row; learner options in ``changes`` replaced; J over the run's own planning horizon at that
+    trial unless ``changes`` sets ``planning_horizon``),
     the planning horizon used and the run's logged ``J_after`` of that trial."""
     if trial not in run.model_trials() or trial not in run.policy_trials():
         raise CheckpointError(f"run {run.run_id} has no model and policy of trial {trial} (models: {run.model_trials()[-1:]})")
-    learner = learner_for(run)
+    learner = learner_for(run, changes)
     model = run.model(trial)
-    horizon = planning_horizon or int(run.metric("planning_horizon").get(trial, learner.horizon))
+    horizon = learner.horizon if "planning_horizon" in (changes or {}) else int(run.metric("planning_horizon").get(trial, learner.horizon))
     logged = run.metric("J_after").get(trial, float("nan"))
 
     def tested(name: str, controller, searches: list) -> Row:
@@ -143,17 +147,21 @@ def main(argv: list[str] | None = None) -> None:
     parser.add_argument("--trial", type=int, default=None, help="default: the run's last trial with a model")
     parser.add_argument("--fresh", type=int, default=3, help="searches from fresh initial controllers")
     parser.add_argument("--budgets", type=int, default=1, help="preset budgets in a row for each fresh start")
-    parser.add_argument("--planning-horizon", type=int, default=None, help="J over this many steps (default: the run's)")
+    parser.add_argument("--set", dest="changes", action="append", default=[], metavar="KEY=VALUE",
+                        help="a learner option changed for every search, e.g. planning_horizon=100 or cost_width=1.0")
+    parser.add_argument("--planning-horizon", type=int, default=None, metavar="H", help="the same as --set planning_horizon=H")
     add_test_arguments(parser)
     args = parser.parse_args(argv)
+    changes = dict(parse_assignments(args.changes))
+    if args.planning_horizon is not None:
+        changes["planning_horizon"] = str(args.planning_horizon)
     torch.set_num_threads(1)
     start = time.perf_counter()
     with SavedPilcoRun(args.run_id, args.tracking_uri) as run:
         trial = args.trial if args.trial is not None else max(run.model_trials())
         evaluator = Evaluator(run.task, n_episodes=args.episodes, seed=args.seed)
         try:
-            rows, horizon, logged = check(run, trial, args.fresh, evaluator, budgets=args.budgets,
-                                          planning_horizon=args.planning_horizon)
+            rows, horizon, logged = check(run, trial, args.fresh, evaluator, budgets=args.budgets, changes=changes)
         finally:
             evaluator.close()
         params = run.params
@@ -165,7 +173,8 @@ def main(argv: list[str] | None = None) -> None:
         machine_line().rstrip(".") + f"; wall time {time.perf_counter() - start:.0f} s.", "",
         f"J: PILCO's closed-form expected cost over {horizon} planning steps under the run's trial-{trial} GP "
         f"(the run logged J_after = {logged:.2f} for its trial-{trial} policy"
-        + (f", over its own {run_horizon} steps" if horizon != run_horizon else "") + "). Each search: the learner's own "
+        + (f", over its own {run_horizon} steps" if horizon != run_horizon else "") + ")"
+        + (f"; every search and J with {', '.join(f'{k}={v}' for k, v in changes.items())}" if changes else "") + ". Each search: the learner's own "
         f"L-BFGS-B with its preset's budget{f' (fresh starts: {args.budgets} in a row, J after each in brackets)' if args.budgets > 1 else ''}. Real: {args.episodes} test episodes from the task's initial distribution "
         f"(seed {args.seed}, the same initial states for every policy; success as the task defines it; mean cost "
         "summed over the episode).", "",

@@ -56,6 +56,13 @@ def test_the_replayed_search_is_the_runs_own(stored):
     assert f"{fresh[0].J_budgets[0]:.2f} -> {fresh[0].J_budgets[1]:.2f}" in lines[5]
 
 
+def test_an_unknown_option_is_a_one_line_error(stored):
+    from harness.errors import OptionError
+
+    with pytest.raises(OptionError, match="unknown option 'planing_horizon'.*Did you mean 'planning_horizon'"):
+        replay(stored, 1, fresh=0, changes={"planing_horizon": "6"})
+
+
 def test_a_trial_without_a_model_is_a_one_line_error(stored):
     from harness.errors import CheckpointError
 
@@ -65,7 +72,7 @@ def test_a_trial_without_a_model_is_a_one_line_error(stored):
 
 
 def test_a_shorter_planning_horizon_replaces_the_runs_own(stored):
-    (rows, horizon, logged), _ = replay(stored, 2, fresh=0, planning_horizon=6)
+    (rows, horizon, logged), _ = replay(stored, 2, fresh=0, changes={"planning_horizon": "6"})
     assert horizon == 6 and len(rows) == 3
     # the same policy's expected cost summed over the first 6 of the run's 12 steps: less than the run's J
     assert 0 < rows[0].J_after < logged
