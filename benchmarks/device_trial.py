@@ -107,7 +107,7 @@ def one_trial(args, device: str) -> dict:
                     hyper_subset=settings["gp_hyper_subset"], refresh_pseudo=settings["gp_refresh_pseudo"])
     report, gp_s = _timed(dev, model.fit, data["x"], data["y"], warm_start=warm, seed=settings["seed"])
     posterior = model.posterior()
-    controller = learner._new_controller(torch.Generator().manual_seed(args.seed))
+    controller = learner.new_controller(torch.Generator().manual_seed(args.seed))
     objective = objective_for(learner, posterior, controller)
     per_eval_ms = time_objective(objective, args.repeats)
     preset = learner.preset
@@ -128,7 +128,7 @@ def agreement(args, posterior) -> tuple[float, float, float]:
     values = []
     for device in ("cpu", "cuda"):
         _, learner = build(args.task, args.task_options, device, args.seed)
-        controller = learner._new_controller(torch.Generator().manual_seed(args.seed))
+        controller = learner.new_controller(torch.Generator().manual_seed(args.seed))
         objective = objective_for(learner, posterior.to(learner.device), controller)
         values.append(objective(objective.get_flat()))
     (J_c, g_c), (J_g, g_g) = values
@@ -142,7 +142,7 @@ def profile(args, posterior) -> list[str]:
     from torch.profiler import profile as torch_profile
 
     _, learner = build(args.task, args.task_options, "cuda", args.seed)
-    controller = learner._new_controller(torch.Generator().manual_seed(args.seed))
+    controller = learner.new_controller(torch.Generator().manual_seed(args.seed))
     objective = objective_for(learner, posterior.to(learner.device), controller)
     objective.cuda_graph = False
     theta = objective.get_flat()

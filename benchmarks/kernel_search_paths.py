@@ -61,7 +61,7 @@ def one_search(learner, posterior, kernel: str, nudge: bool, seed: int) -> dict:
     """The preset's policy search from the fresh controller of ``seed`` with the dynamics GP's ``kernel``."""
     from plugins.pilco.moments import MomentMatchingGP
 
-    controller = learner._new_controller(torch.Generator().manual_seed(seed))
+    controller = learner.new_controller(torch.Generator().manual_seed(seed))
     objective = device_trial.objective_for(learner, posterior, controller)
     name, options = KERNELS[kernel]
     objective.dynamics = MomentMatchingGP(objective.posterior, kernel=name, **options)

@@ -89,7 +89,7 @@ class CheckpointedRun:
         self.model.load_state_dict({**{k: hyp[k] for k in ("log_ell", "log_alpha", "log_sigma")}, "inputs": x, "targets": y,
                                     "pseudo_inputs": pseudo if pseudo is not None else np.zeros((0, x.shape[1])),
                                     "sparse": pseudo is not None})
-        controller = self.learner._new_controller(torch.Generator().manual_seed(0))
+        controller = self.learner.new_controller(torch.Generator().manual_seed(0))
         controller.load_state_dict({k: torch.as_tensor(v) for k, v in state["controller"].items()})
         self.policy = PilcoPolicy(controller, self.learner.layout)
         self.horizon = int(state.get("planning_horizon") or self.learner.horizon)
@@ -170,7 +170,7 @@ def main(argv: list[str] | None = None) -> None:
         basis = h.pseudo_inputs if h.pseudo_inputs is not None else inputs
         whole = model.posterior()
         J0, t0 = j_and_time(whole, run.policy, spec, horizon, width, mean_only)
-        fresh = run.learner._new_controller(torch.Generator().manual_seed(run.seed)).state_dict()
+        fresh = run.learner.new_controller(torch.Generator().manual_seed(run.seed)).state_dict()
 
         def score(label: str, posterior: GPPosterior, refine_seconds: float | None) -> None:
             J, seconds = (J0, t0) if posterior is whole else j_and_time(posterior, run.policy, spec, horizon, width, mean_only)

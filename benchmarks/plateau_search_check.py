@@ -117,7 +117,7 @@ def check(run: SavedPilcoRun, trial: int, fresh: int, evaluator: Evaluator, log=
     def searched(name: str, controller, times: int = 1) -> Row:
         objective = objective_for(learner, controller, model, horizon)
         # the learner's own search and budgets, `times` in a row
-        return tested(name, controller, [learner._search(objective, learner.kernel, 1) for _ in range(times)])
+        return tested(name, controller, [learner.search_policy(objective, learner.kernel, 1) for _ in range(times)])
 
     rows = [tested(f"the run's trial-{trial} policy (no search)", run.policy(trial).controller, [])]
     if trial - 1 in run.policy_trials():
@@ -125,7 +125,7 @@ def check(run: SavedPilcoRun, trial: int, fresh: int, evaluator: Evaluator, log=
     rows.append(searched(f"continued (from policy {trial}, one more budget)", run.policy(trial).controller))
     for s in range(1, fresh + 1):
         rows.append(searched(f"fresh {s} (initial controller, generator seed {s}{f', {budgets} budgets' if budgets > 1 else ''})",
-                             learner._new_controller(torch.Generator().manual_seed(s)), budgets))
+                             learner.new_controller(torch.Generator().manual_seed(s)), budgets))
     return rows, horizon, logged
 
 

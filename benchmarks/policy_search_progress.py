@@ -63,7 +63,7 @@ def first_search_objective(task_name: str, options: dict[str, str], seed: int, r
     x, y = transitions(interaction.episodes, learner.layout)
     model = GPModel(sparse_threshold=learner.preset.sparse_threshold, num_pseudo=learner.num_pseudo)
     model.fit(x, y, seed=seed + 1)
-    controller = learner._new_controller(torch.Generator().manual_seed(seed))
+    controller = learner.new_controller(torch.Generator().manual_seed(seed))
     objective = PolicyObjective(controller, model.posterior(), learner.layout, spec.cost, spec.init_mean, spec.init_cov,
                                 learner.horizon, width=learner.cost_width)
     return objective, x.shape[0]

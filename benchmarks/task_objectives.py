@@ -39,7 +39,7 @@ def task_objective(task_name: str, options: dict[str, str], n: int, horizon: int
     learner = Pilco(spec, {}, seed)
     X, Y, log_ell, log_alpha, log_sigma = random_rollout_data(task, learner.layout, n, seed)
     posterior = full_posterior(X, Y, log_ell, log_alpha, log_sigma)
-    controller = learner._new_controller(torch.Generator().manual_seed(seed))
+    controller = learner.new_controller(torch.Generator().manual_seed(seed))
     return PolicyObjective(controller, posterior, learner.layout, spec.cost, spec.init_mean, spec.init_cov, horizon)
 
 

@@ -210,7 +210,9 @@ class Pilco(Learner):
         return PRESETS.get(spec.name, GENERIC).max_trials, None
 
     # ---- pieces --------------------------------------------------------------------------------
-    def _new_controller(self, generator: torch.Generator) -> SquashedController:
+    def new_controller(self, generator: torch.Generator) -> SquashedController:
+        """The task preset's initial controller drawn with ``generator``: what a run starts from (seeded by the
+        run's seed) and what a fresh start (``fresh_start_tol``) searches from again."""
         from plugins.pilco.policy import initial_controller
 
         return initial_controller(self.spec, self.preset, self.layout, self.options["squash"], generator)
@@ -256,7 +258,7 @@ class Pilco(Learner):
         model = GPModel(device=self.device, sparse_threshold=self.preset.sparse_threshold, num_pseudo=self.num_pseudo, max_evals_full=o["gp_max_evals"],
                         max_evals_fitc=o["gp_fitc_evals"], hyper_subset=o["gp_hyper_subset"],
                         refresh_pseudo=o["gp_refresh_pseudo"])
-        controller = self._new_controller(torch.Generator().manual_seed(self.seed))
+        controller = self.new_controller(torch.Generator().manual_seed(self.seed))
         resumed = self._resume_state
         graph_warned = False
         try:
@@ -291,7 +293,7 @@ class Pilco(Learner):
                 )
                 previous = objective.get_flat()
                 try:
-                    search = self._search(objective, kernel, threads)
+                    search = self.search_policy(objective, kernel, threads)
                     failed = 0.0
                 except NumericalError:
                     objective.set_flat(previous)  # keep the previous policy, say so in the metrics
@@ -337,7 +339,7 @@ class Pilco(Learner):
         finally:
             shutil.rmtree(workdir, ignore_errors=True)
 
-    def _search(self, objective: PolicyObjective, kernel: str, threads: int):
+    def search_policy(self, objective: PolicyObjective, kernel: str, threads: int):
         """One policy search from the controller's current parameters within the preset's budgets."""
         from plugins.pilco.moments import COMPILED_KERNELS
         from plugins.pilco.policy_search import optimise_policy
@@ -355,9 +357,9 @@ class Pilco(Learner):
 
         kept_theta = objective.get_flat()
         generator = torch.Generator().manual_seed(1_000_003 * (self.seed + 1) + trial)
-        controller.load_state_dict(self._new_controller(generator).state_dict())  # copied onto the controller's device
+        controller.load_state_dict(self.new_controller(generator).state_dict())  # copied onto the controller's device
         try:
-            second = self._search(objective, kernel, threads)
+            second = self.search_policy(objective, kernel, threads)
         except NumericalError:
             objective.set_flat(kept_theta)
             return search, {"J": math.nan, "kept": False}

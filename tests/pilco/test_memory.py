@@ -33,7 +33,7 @@ def test_repeated_policy_gradients_do_not_accumulate_memory():
     y = 0.1 * rng.normal(size=(n, 4))
     model = GPModel()
     model.fit(x, y, max_evals=5)
-    controller = learner._new_controller(torch.Generator().manual_seed(0))
+    controller = learner.new_controller(torch.Generator().manual_seed(0))
     objective = PolicyObjective(controller, model.posterior(), learner.layout, spec.cost, spec.init_mean, spec.init_cov, 30)
     theta = objective.get_flat()
     for _ in range(5):
