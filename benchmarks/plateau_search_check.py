@@ -52,8 +52,8 @@ from benchmarks.swingup_failure_modes import add_test_arguments, wilson_interval
 from harness.errors import CheckpointError, exit_on_error  # noqa: E402
 from harness.evaluation import Evaluator  # noqa: E402
 from harness.options import parse_assignments  # noqa: E402
-from harness.seeding import derive_seeds  # noqa: E402
-from plugins.pilco.objective import PolicyObjective  # noqa: E402
+from harness.runner import RunConfig, new_learner, prepare  # noqa: E402
+from harness.testrun import task_options  # noqa: E402
 from plugins.pilco.policy import PilcoPolicy  # noqa: E402
 from plugins.pilco.saved_run import SavedPilcoRun  # noqa: E402
 
@@ -74,18 +74,13 @@ class Row:
 
 
 def learner_for(run: SavedPilcoRun, changes: dict[str, str] | None = None):
-    """The run's learner as the run built it (its recorded ``learner.*`` options and derived seed), with the
-    options in ``changes`` replaced."""
-    options = {k[len("learner."):]: v for k, v in run.params.items() if k.startswith("learner.") and v != "None"}
-    return run.learner_cls(run.task.spec, {**options, **(changes or {})}, seed=derive_seeds(int(run.params["seed"]))["learner"])
-
-
-def objective_for(learner, controller, model, horizon: int) -> PolicyObjective:
-    """J over ``horizon`` steps under ``model`` with the learner's own settings (as in ``Pilco.learn``)."""
-    spec = learner.spec
-    return PolicyObjective(controller, model.posterior(max_basis=learner.options["planning_basis"]), learner.layout, spec.cost,
-                           spec.init_mean, spec.init_cov, horizon, mean_only=learner.mean_only, width=learner.cost_width,
-                           policy_noise_std=learner.policy_noise_std, kernel=learner.kernel, threads=1)
+    """The run's learner as :func:`harness.runner.run` built it (:func:`~harness.runner.new_learner`: its recorded
+    ``learner.*`` options, its seed), with the options in ``changes`` replaced."""
+    params = run.params
+    options = {k[len("learner."):]: v for k, v in params.items() if k.startswith("learner.") and v != "None"}
+    config = RunConfig(params["learner"], params["task"], int(params["seed"]), learner_options={**options, **(changes or {})},
+                       task_options=task_options(params))
+    return new_learner(prepare(config))
 
 
 def check(run: SavedPilcoRun, trial: int, fresh: int, evaluator: Evaluator, log=print, budgets: int = 1,
@@ -97,12 +92,15 @@ def check(run: SavedPilcoRun, trial: int, fresh: int, evaluator: Evaluator, log=
     if trial not in run.model_trials() or trial not in run.policy_trials():
         raise CheckpointError(f"run {run.run_id} has no model and policy of trial {trial} (models: {run.model_trials()[-1:]})")
     learner = learner_for(run, changes)
-    model = run.model(trial)
-    horizon = learner.horizon if "planning_horizon" in (changes or {}) else int(run.metric("planning_horizon").get(trial, learner.horizon))
+    if "planning_horizon" not in (changes or {}):  # the run's own horizon at that trial (a schedule may have grown it)
+        learner.horizon = int(run.metric("planning_horizon").get(trial, learner.horizon))
+    horizon = learner.horizon
     logged = run.metric("J_after").get(trial, float("nan"))
+    posterior = run.model(trial).posterior(max_basis=learner.options["planning_basis"])
 
-    def tested(name: str, controller, searches: list) -> Row:
-        objective = objective_for(learner, controller, model, horizon)
+    def tested(name: str, controller, searches: list, objective=None) -> Row:
+        """``objective``: the one the searches ran on (else J is computed afresh)."""
+        objective = objective or learner.planning_objective(controller, posterior, threads=1)
         with torch.no_grad():
             J = float(objective.step_costs()[0].sum())
         result = evaluator(PilcoPolicy.snapshot(controller, learner.layout))
@@ -115,9 +113,9 @@ def check(run: SavedPilcoRun, trial: int, fresh: int, evaluator: Evaluator, log=
         return row
 
     def searched(name: str, controller, times: int = 1) -> Row:
-        objective = objective_for(learner, controller, model, horizon)
+        objective = learner.planning_objective(controller, posterior, threads=1)
         # the learner's own search and budgets, `times` in a row
-        return tested(name, controller, [learner.search_policy(objective, learner.kernel, 1) for _ in range(times)])
+        return tested(name, controller, [learner.search_policy(objective, learner.kernel, 1) for _ in range(times)], objective)
 
     rows = [tested(f"the run's trial-{trial} policy (no search)", run.policy(trial).controller, [])]
     if trial - 1 in run.policy_trials():

@@ -245,7 +245,6 @@ class Pilco(Learner):
         import torch
 
         from plugins.pilco.gp import GPHyperparameters, GPModel
-        from plugins.pilco.objective import PolicyObjective
         from plugins.pilco.policy import PilcoPolicy, cpu_state_dict, transitions
         from plugins.pilco.sampling import sampled_costs
         from plugins.random_learner import UniformRandomPolicy
@@ -286,11 +285,7 @@ class Pilco(Learner):
                 hyperparameters = model.hyperparameters
 
                 posterior = model.posterior(max_basis=o["planning_basis"])
-                objective = PolicyObjective(
-                    controller, posterior, self.layout, spec.cost, spec.init_mean, spec.init_cov,
-                    self.horizon, mean_only=self.mean_only, width=self.cost_width, policy_noise_std=self.policy_noise_std,
-                    kernel=kernel, threads=threads, device=self.device, cuda_graph=o["cuda_graph"],
-                )
+                objective = self.planning_objective(controller, posterior, threads)
                 previous = objective.get_flat()
                 try:
                     search = self.search_policy(objective, kernel, threads)
@@ -338,6 +333,17 @@ class Pilco(Learner):
                 yield PilcoPolicy.snapshot(controller, self.layout)
         finally:
             shutil.rmtree(workdir, ignore_errors=True)
+
+    def planning_objective(self, controller: SquashedController, posterior, threads: int) -> PolicyObjective:
+        """J (and dJ) of ``controller`` under a dynamics GP's ``posterior`` with this learner's settings: the
+        task's cost and initial state distribution, the planning horizon (``self.horizon``), cost width,
+        ``mean_only``, policy noise, kernel, device and CUDA graph option; ``threads`` for the contraction."""
+        from plugins.pilco.objective import PolicyObjective
+
+        spec = self.spec
+        return PolicyObjective(controller, posterior, self.layout, spec.cost, spec.init_mean, spec.init_cov, self.horizon,
+                               mean_only=self.mean_only, width=self.cost_width, policy_noise_std=self.policy_noise_std,
+                               kernel=self.kernel, threads=threads, device=self.device, cuda_graph=self.options["cuda_graph"])
 
     def search_policy(self, objective: PolicyObjective, kernel: str, threads: int):
         """One policy search from the controller's current parameters within the preset's budgets."""
