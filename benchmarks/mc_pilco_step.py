@@ -55,22 +55,24 @@ SIZES: dict[str, tuple[dict[str, str], int, tuple[int, ...]]] = {
 
 
 def particle_objectives(task_name: str, options: dict[str, str], n: int, bases: tuple[int, ...], particles: int,
-                        device: torch.device = torch.device("cpu")):
-    """``{label: ParticleObjective}``: the full GP on ``n`` random-rollout transitions, then FITC on each basis
-    size, each with its posterior, controller, cost and initial distribution on ``device``."""
+                        device: torch.device = torch.device("cpu"), learner_options: dict[str, str] | None = None,
+                        full: bool = True):
+    """``{label: ParticleObjective}``: the full GP on ``n`` random-rollout transitions (unless not ``full``),
+    then FITC on each basis size, each with its posterior, controller, cost and initial distribution on
+    ``device``. The controller is ``mc-pilco``'s initial one for seed 0 with ``learner_options`` (default: the
+    reference's centres, ``centres=initial``, as this benchmark's committed rows were measured with)."""
     from harness.discovery import load_task
     from plugins.mc_pilco.learner import McPilco
     from plugins.mc_pilco.particles import ParticleObjective
     from plugins.pilco.cost import CostMoments
     from plugins.pilco.gp import full_posterior
-    from plugins.pilco.policy import initial_controller
     from plugins.pilco.sparse import reduced_posterior
 
     task = load_task(task_name)(**options)
     spec = task.spec
-    learner = McPilco(spec, {"particles": particles}, 0)
+    learner = McPilco(spec, {"centres": "initial"} | (learner_options or {}) | {"particles": particles}, 0)
     X, Y, log_ell, log_alpha, log_sigma = random_rollout_data(task, learner.layout, n)
-    posteriors = {f"all {n} (full GP)": full_posterior(X, Y, log_ell, log_alpha, log_sigma)}
+    posteriors = {f"all {n} (full GP)": full_posterior(X, Y, log_ell, log_alpha, log_sigma)} if full else {}
     for m in bases:
         posteriors[f"{m} (FITC)"] = reduced_posterior(X, Y, X, log_ell, log_alpha, log_sigma, m)
     cost = CostMoments(spec.cost, learner.cost_width, device)
@@ -78,7 +80,7 @@ def particle_objectives(task_name: str, options: dict[str, str], n: int, bases: 
     cov = torch.as_tensor(spec.init_cov, dtype=torch.float64, device=device)
     objectives = {}
     for label, posterior in posteriors.items():
-        controller = initial_controller(spec, learner.preset, learner.layout, "trapezoid", torch.Generator().manual_seed(0))
+        controller = learner.new_controller(torch.Generator().manual_seed(0))
         objectives[label] = ParticleObjective(controller.to(device), posterior.detach().to(device), learner.layout, cost, mean, cov,
                                               learner.horizon, particles)
     return objectives, learner.horizon

@@ -14,8 +14,9 @@ A third party's learner in all but location: it uses the plugin API (:mod:`harne
 PILCO's library (GP model, controllers, presets, state layout, the transitions the GP learns), not
 PILCO's learner. Its differences from ``pilco``: the policy evaluation (particles instead of moment
 matching; no Gaussian approximation of the state distribution), the optimiser (Adam on a noisy
-estimate instead of L-BFGS on a closed form) and dropout on the RBF policy's weights during the
-search. Paper defaults: 400 particles, Adam with learning rate 0.01, dropout 0.25 reduced by 0.125
+estimate instead of L-BFGS on a closed form), dropout on the RBF policy's weights during the
+search, and the RBF centres' initialisation (spread over the state space, as MC-PILCO's, instead of
+drawn from the initial state distribution; option ``centres``). Paper defaults: 400 particles, Adam with learning rate 0.01, dropout 0.25 reduced by 0.125
 as the search stalls, at most 1500 steps per trial (cart-pole: 2000-4000).
 """
 
@@ -24,7 +25,7 @@ from __future__ import annotations
 import math
 import warnings
 from collections.abc import Iterator
-from typing import Any
+from typing import TYPE_CHECKING, Any
 
 import numpy as np
 
@@ -36,6 +37,11 @@ from harness.options import Option
 from harness.task import TaskSpec
 from harness.threads import run_threads
 from plugins.pilco.presets import GENERIC, PRESETS, preset_with
+
+if TYPE_CHECKING:
+    import torch
+
+    from plugins.pilco.controllers import SquashedController
 
 
 class McPilco(Learner):
@@ -54,6 +60,9 @@ class McPilco(Learner):
         Option("controller", str, None, "policy: rbf or linear (default: the PILCO task preset)", choices=(None, "rbf", "linear")),
         Option("num_centres", int, None, "RBF centres (default: the PILCO task preset)", low=1),
         Option("squash", str, "trapezoid", "squashing to the bounds", choices=("trapezoid", "sin")),
+        Option("centres", str, "spread", "initial RBF centres: spread (MC-PILCO's: states uniform in +-pi per entry, angles "
+               "over the circle) or initial (PILCO's reference: drawn from the initial state distribution, where they nearly "
+               "coincide and the particle estimate of J is rough in the policy's parameters)", choices=("spread", "initial")),
         Option("initial_rollouts", int, None, "random rollouts before learning (default: the PILCO task preset)", low=1),
         Option("random_scale", float, None, "random controls in scale * bounds (default: the PILCO task preset)", low=0.0, high=1.0),
         Option("planning_horizon", int, None, "simulated steps per particle (default: the PILCO preset's, else the task horizon)", low=1),
@@ -104,6 +113,14 @@ class McPilco(Learner):
         """The PILCO task preset's number of trials."""
         return PRESETS.get(spec.name, GENERIC).max_trials, None
 
+    def new_controller(self, generator: torch.Generator) -> SquashedController:
+        """The initial controller drawn with ``generator`` (a run's is seeded by its seed): the PILCO task
+        preset's, with its RBF centres spread over the state space (option ``centres``)."""
+        from plugins.pilco.policy import initial_controller
+
+        spread = math.pi if self.options["centres"] == "spread" else None
+        return initial_controller(self.spec, self.preset, self.layout, self.options["squash"], generator, spread=spread)
+
     def learn(self, interaction: Interaction) -> Iterator[Policy]:
         import torch
 
@@ -111,7 +128,7 @@ class McPilco(Learner):
         from plugins.mc_pilco.particles import ParticleObjective
         from plugins.pilco.cost import CostMoments
         from plugins.pilco.gp import GPHyperparameters, GPModel
-        from plugins.pilco.policy import PilcoPolicy, cpu_state_dict, initial_controller, transitions
+        from plugins.pilco.policy import PilcoPolicy, cpu_state_dict, transitions
         from plugins.random_learner import UniformRandomPolicy
 
         spec, o = self.spec, self.options
@@ -119,7 +136,7 @@ class McPilco(Learner):
         device = self.device
         model = GPModel(device=device, sparse_threshold=self.preset.sparse_threshold, num_pseudo=self.preset.sparse_threshold,
                         max_evals_full=o["gp_max_evals"], max_evals_fitc=o["gp_fitc_evals"])
-        controller = initial_controller(spec, self.preset, self.layout, o["squash"], torch.Generator().manual_seed(self.seed))
+        controller = self.new_controller(torch.Generator().manual_seed(self.seed))
         controller.to(device)
         resumed = self._resume_state
         if resumed is None:

@@ -13,6 +13,7 @@ Shared by every learner on PILCO's library (``pilco``, ``pilco-mean``, ``mc-pilc
 from __future__ import annotations
 
 import copy
+import math
 from dataclasses import asdict
 from typing import Any
 
@@ -137,19 +138,48 @@ def _initial_policy_input_moments(spec: TaskSpec, layout: StateLayout) -> tuple[
 
 
 def initial_controller(spec: TaskSpec, preset: Preset, layout: StateLayout, squash: str | None,
-                       generator: torch.Generator) -> SquashedController:
+                       generator: torch.Generator, spread: float | None = None) -> SquashedController:
     """The reference's initial policy: a linear controller with small random weights, or an RBF
     network with ``preset.num_centres`` centres drawn from the initial policy-input distribution;
-    squashed to the task's symmetric control bounds (``squash``: trapezoid, sin or None)."""
+    squashed to the task's symmetric control bounds (``squash``: trapezoid, sin or None).
+
+    ``spread`` (RBF only): the centres are instead the policy inputs of states drawn uniformly from
+    ``[-spread, spread]`` in every non-angle entry and over the whole circle in every angle
+    (:func:`spread_centres`); targets and length-scales as the reference's.
+    """
     if not np.allclose(spec.action_low, -spec.action_high):
         raise ValueError(f"PILCO's squashing needs symmetric control bounds; {spec.name} has {spec.action_low}..{spec.action_high}")
     p, f = len(layout.policy_inputs), spec.action_dim
     if preset.controller == "linear":
         base = LinearController.initial(p, f, scale=0.01, generator=generator)
-    else:
+    elif spread is None:
         mean, cov = _initial_policy_input_moments(spec, layout)
         base = RBFController.initial(mean, cov, preset.num_centres, f, _initial_length_scales(layout), generator=generator)
+    else:
+        centres = spread_centres(layout, preset.num_centres, spread, generator)
+        targets = 0.1 * torch.randn(preset.num_centres, f, generator=generator, dtype=torch.float64)
+        base = RBFController(centres, targets, torch.log(_initial_length_scales(layout)).expand(f, p))
     return SquashedController(base, spec.action_high, squash)
+
+
+def spread_centres(layout: StateLayout, num_centres: int, spread: float, generator: torch.Generator) -> torch.Tensor:
+    """``(num_centres, p)`` RBF centres spread over the state space (MC-PILCO's initialisation, Amadio et
+    al. 2022): the policy inputs ``a(x)[policy_inputs]`` of states ``x`` uniform in ``[-spread, spread]``
+    in each non-angle entry and in ``[-pi, pi]`` in each angle (so sin/cos pairs lie on the circle).
+
+    The reference draws the centres from the initial state distribution instead; where that is narrow
+    (cart-pole: std 0.1) they nearly coincide, the policy's Gram matrix is close to singular
+    (weights ``beta`` in the thousands) and a small step of the centres changes the policy a lot,
+    which moment matching's smoothing tolerates but a particle estimate of J does not
+    (``results/benchmarks/particle_gradient_check.md``)."""
+    if not spread > 0.0:
+        raise ValueError(f"spread must be positive, got {spread}")
+    d = layout.state_dim
+    half = torch.full((d,), float(spread), dtype=torch.float64)
+    if layout.angle_indices:
+        half[list(layout.angle_indices)] = math.pi
+    x = (2.0 * torch.rand(num_centres, d, generator=generator, dtype=torch.float64) - 1.0) * half
+    return layout.augment(x)[:, layout.policy_index]
 
 
 def _initial_length_scales(layout: StateLayout) -> torch.Tensor:

@@ -262,3 +262,52 @@ def test_adam_steps_replayed_as_a_cuda_graph_equal_the_launched_ones(case) -> No
     assert graph.steps == launched.steps and graph.trace == pytest.approx(launched.trace, rel=1e-12)
     assert float((t_graph - t_launched).norm()) <= 1e-12 * float(t_launched.norm())
     assert graph.J_before == pytest.approx(on_cpu.J_before, rel=1e-10)
+
+
+def test_spread_centres_cover_the_state_space_and_keep_the_policy_gram_well_conditioned() -> None:
+    """Cart-pole: the spread centres' sin/cos entries lie on the unit circle at angles over the whole
+    circle, the other entries fill [-pi, pi]; the reference's centres (drawn from the initial state
+    distribution) nearly coincide, so their policy Gram matrix is far worse conditioned and the
+    weights beta = (K + 0.01^2 I)^-1 t are orders of magnitude larger for targets of the same size."""
+    import math
+
+    from harness.discovery import load_task
+    from plugins.pilco.policy import initial_controller, spread_centres
+
+    spec = load_task("cartpole")().spec
+    learner = McPilco(spec, {}, 0)
+    layout = learner.layout
+    centres = spread_centres(layout, 2000, math.pi, torch.Generator().manual_seed(0))
+    assert centres.shape == (2000, len(layout.policy_inputs))
+    plain = [k for k, i in enumerate(layout.policy_inputs) if i < layout.state_dim]
+    sin, cos = centres[:, len(plain)], centres[:, len(plain) + 1]
+    np.testing.assert_allclose((sin**2 + cos**2).numpy(), 1.0, rtol=1e-12)
+    angles = torch.atan2(sin, cos)
+    assert angles.min() < -0.99 * math.pi and angles.max() > 0.99 * math.pi
+    assert centres[:, plain].abs().max() <= math.pi and centres[:, plain].abs().max() > 0.99 * math.pi
+    assert torch.equal(spread_centres(layout, 50, math.pi, torch.Generator().manual_seed(3)),
+                       spread_centres(layout, 50, math.pi, torch.Generator().manual_seed(3)))
+    betas = {}
+    for name, spread in (("spread", math.pi), ("initial", None)):
+        controller = initial_controller(spec, learner.preset, layout, "trapezoid", torch.Generator().manual_seed(0), spread=spread)
+        betas[name] = float(controller.base.posterior().beta.abs().max())
+    assert betas["spread"] < 5.0 and betas["initial"] > 100.0 * betas["spread"]
+    with pytest.raises(ValueError, match="spread must be positive"):
+        spread_centres(layout, 5, 0.0, torch.Generator())
+
+
+def test_mc_pilco_starts_from_spread_centres_unless_asked_for_the_reference() -> None:
+    """The learner's initial controller: spread centres by default; with ``centres=initial`` exactly
+    PILCO's own initial controller for the same generator."""
+    from harness.discovery import load_task
+    from plugins.pilco.learner import Pilco
+
+    spec = load_task("cartpole")().spec
+    spread = McPilco(spec, {}, 4).new_controller(torch.Generator().manual_seed(4))
+    initial = McPilco(spec, {"centres": "initial"}, 4).new_controller(torch.Generator().manual_seed(4))
+    reference = Pilco(spec, {}, 4).new_controller(torch.Generator().manual_seed(4))
+    for name, value in reference.state_dict().items():
+        assert torch.equal(initial.state_dict()[name], value), name
+    assert initial.base.centres[:, :3].abs().max() < 0.6  # x, dx, dtheta around the initial state (std 0.1)
+    assert spread.base.centres[:, :3].abs().max() > 2.0
+    assert spread.base.centres.shape == initial.base.centres.shape
