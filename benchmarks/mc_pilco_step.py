@@ -2,7 +2,7 @@
 
 Usage::
 
-    .venv/bin/python benchmarks/mc_pilco_step.py [--tasks cartpole unicycle] [--repeats 5] [--device cuda]
+    .venv/bin/python benchmarks/mc_pilco_step.py [--tasks cartpole unicycle] [--repeats 5] [--device cuda] [--compare-prediction]
 
 For each task: a dynamics GP on ``n`` transitions of uniformly random rollouts of the real task, with
 hyperparameters set from the data's scales (as ``benchmarks/task_objectives.py`` does: they do not
@@ -27,12 +27,19 @@ of them that the learner's option builds (``GPModel.posterior(max_basis)``). Col
   J_hat says little about the model; on the unicycle (``init=code``, starting upright) it falls at
   varying times and J_hat is informative.
 
+With ``--compare-prediction`` (CPU): a second table times each row's Adam step with the GP prediction as
+the learner makes it (``predict_latent``'s fused pass with its closed-form gradient) and as the torch
+composition differentiated by autograd (``fused=False``, the path before it), alternately in one process,
+from the learner's own initial controller (spread centres), and gives how far J_hat and its gradient are apart.
+
 Writes ``results/benchmarks/mc_pilco_step.md``.
 """
 
 from __future__ import annotations
 
 import argparse
+import contextlib
+import functools
 import statistics
 import sys
 import time
@@ -101,6 +108,39 @@ def step_ms(objective, repeats: int, device: torch.device) -> float:
     return 1e3 * statistics.median(times)
 
 
+@contextlib.contextmanager
+def composed_prediction():
+    """Inside the block the particles predict through the torch composition differentiated by autograd
+    (``predict_latent(..., fused=False)``, the path before the fused pass) instead of the fused pass."""
+    import plugins.mc_pilco.particles as particles
+    from plugins.pilco.gp import predict_latent
+
+    particles.predict_latent = functools.partial(predict_latent, fused=False)
+    try:
+        yield
+    finally:
+        particles.predict_latent = predict_latent
+
+
+def compare_prediction(objective, repeats: int) -> tuple[float, float, float, float]:
+    """``(ms fused, ms composed, |dJ| relative, max |d grad| relative)``: CPU ms per Adam step with the fused
+    prediction and with the composition, timed alternately (``repeats`` each, medians), and how far J_hat and
+    its gradient are apart on the same random numbers (dropout 0.25)."""
+    fused, composed = [], []
+    outputs = []
+    for side in (fused, composed) * (repeats + 1):
+        context = composed_prediction() if side is composed else contextlib.nullcontext()
+        with context:
+            start = time.process_time()
+            value, _, grads = objective.value_and_grad(torch.Generator().manual_seed(1), 0.25)
+            side.append(time.process_time() - start)
+        if len(outputs) < 2:
+            outputs.append((value, torch.cat([g.reshape(-1) for g in grads])))
+    (v1, g1), (v2, g2) = outputs
+    return (1e3 * statistics.median(fused[1:]), 1e3 * statistics.median(composed[1:]), abs(v1 - v2) / abs(v2),
+            float((g1 - g2).abs().max() / g2.abs().max()))
+
+
 def estimates(objective, sets: int = 20) -> np.ndarray:
     with torch.no_grad():
         return np.array([float(objective.value(torch.Generator().manual_seed(100 + s))) for s in range(sets)])
@@ -113,6 +153,10 @@ def main(argv: list[str] | None = None) -> None:
     parser.add_argument("--particles", type=int, default=400)
     parser.add_argument("--device", default="cpu", choices=("cpu", "cuda"),
                         help="where the particles run (cuda: wall time on the GPU; cpu: CPU time on one thread)")
+    parser.add_argument("--compare-prediction", action="store_true",
+                        help="CPU: also time each row's Adam step with the GP prediction composed by torch and differentiated "
+                             "by autograd (before the fused pass), alternating with the fused one, and give how far J_hat and "
+                             "its gradient are apart")
     parser.add_argument("--out", type=Path, default=None,
                         help="default: results/benchmarks/mc_pilco_step.md (mc_pilco_step_cuda.md with --device cuda)")
     args = parser.parse_args(argv)
@@ -134,6 +178,7 @@ def main(argv: list[str] | None = None) -> None:
              "| J_hat (20 sets of random numbers: mean) | its Monte-Carlo standard error "
              "| J_hat minus the full GP's, same random numbers (mean [min, max]) |",
              "|---" * (11 if gpu else 9) + "|"]
+    compared = []
     for task in args.tasks:
         options, n, bases = SIZES[task]
         objectives, horizon = particle_objectives(task, options, n, bases, args.particles, device)
@@ -154,6 +199,20 @@ def main(argv: list[str] | None = None) -> None:
             diff = values - reference
             lines.append(f"| {task} | {label} | {horizon} | {ms:.0f} | {base_ms / ms:.1f}x |{graph} {1500 * (graph_ms if gpu else ms) / 6e4:.1f} | {values.mean():.3f} | "
                          f"{values.std(ddof=1) / np.sqrt(len(values)):.3f} | {diff.mean():+.3f} [{diff.min():+.3f}, {diff.max():+.3f}] |")
+        if args.compare_prediction and not gpu:  # from the learner's own initial controller (spread centres), where
+            # J_hat is smooth in theta: from the reference's centres rounding differences grow over the horizon
+            for label, objective in particle_objectives(task, options, n, bases, args.particles, device,
+                                                        learner_options={"centres": "spread"})[0].items():
+                compared.append((task, label, *compare_prediction(objective, args.repeats)))
+    if compared:
+        lines += ["", "The GP prediction of each step: the fused pass with its closed-form gradient (the default) against the "
+                  "torch composition differentiated by autograd (before it), from the learner's initial controller (spread "
+                  "centres; from the reference's J_hat is rough and rounding differences grow over the horizon), timed alternately in this process "
+                  f"({args.repeats} each, medians), and how far J_hat and its gradient are apart on the same random numbers:", "",
+                  "| task | planning basis | CPU ms per Adam step, fused | composed | speed-up | J_hat, relative difference "
+                  "| gradient, largest difference relative to its largest entry |", "|---|---|---|---|---|---|---|"]
+        for task, label, fused, composed, dj, dg in compared:
+            lines.append(f"| {task} | {label} | {fused:.0f} | {composed:.0f} | {composed / fused:.2f}x | {dj:.1e} | {dg:.1e} |")
     write_report(lines, out)
 
 

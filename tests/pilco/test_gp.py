@@ -10,6 +10,7 @@ import pytest
 import torch
 
 from harness.errors import NumericalError
+from plugins.pilco.posterior import GPPosterior
 from plugins.pilco.gp import (
     CURB_LOG_LS,
     CURB_LOG_SNR,
@@ -47,6 +48,17 @@ def gp_sample(n, d, ells, alphas, sigma, seed, low=-3.0, high=3.0):
     chol = torch.linalg.cholesky(se_ard(x, x, log_ell, log_alpha) + 1e-10 * torch.eye(n, dtype=DT))
     f = (chol @ torch.randn(e, n, 1, generator=g, dtype=DT))[..., 0].T
     return x, f + sigma * torch.randn(n, e, generator=g, dtype=DT)
+
+
+def central_differences(f, x: torch.Tensor, eps: float = 1e-6) -> torch.Tensor:
+    """Gradient of the scalar ``f`` at ``x`` (any shape) by central differences, entry by entry."""
+    fd = torch.zeros_like(x)
+    with torch.no_grad():
+        for index in np.ndindex(*x.shape):
+            step = torch.zeros_like(x)
+            step[index] = eps
+            fd[index] = (float(f(x + step)) - float(f(x - step))) / (2 * eps)
+    return fd
 
 
 def random_hyp(e, d, gen):
@@ -179,6 +191,39 @@ def test_predictions_match_paper_equations_7_8():
         v_want = math.exp(2 * float(h.log_alpha[a])) - np.einsum("ij,ij->j", ks, np.linalg.solve(k, ks))
         np.testing.assert_allclose(mean[:, a].numpy(), m_want, rtol=1e-9, atol=1e-10)
         np.testing.assert_allclose(var[:, a].numpy(), v_want, rtol=1e-7, atol=1e-10)
+
+
+def test_fixed_model_prediction_and_its_input_gradient_equal_the_autograd_composition():
+    """``predict_latent`` on a fixed model (the fused pass with its closed-form gradient) against the same
+    model with its tensors requiring grad (the torch composition, differentiated by autograd): mean and
+    variance to rounding, their gradient wrt the test inputs to 1e-10 relative; and that gradient against
+    central differences."""
+    gen = torch.Generator().manual_seed(12)
+    x = torch.randn(40, 3, generator=gen, dtype=DT)
+    y = torch.randn(40, 2, generator=gen, dtype=DT)
+    h = random_hyp(2, 3, gen)
+    fixed = full_posterior(x, y, h.log_ell, h.log_alpha, h.log_sigma).detach()
+    free = GPPosterior(*(t.clone().requires_grad_(True) for t in (fixed.inputs, fixed.beta, fixed.inv_k, fixed.log_ell,
+                                                                  fixed.log_alpha, fixed.log_sigma)))
+    xs = torch.randn(9, 3, generator=gen, dtype=DT)
+    xs[0] = x[5]  # a test input on a basis point (squared distance 0 up to rounding)
+    g_mean, g_var = torch.randn(9, 2, generator=gen, dtype=DT), torch.randn(9, 2, generator=gen, dtype=DT)
+    results = []
+    for post in (fixed, free):
+        inputs = xs.clone().requires_grad_(True)
+        mean, var = predict_latent(post, inputs)
+        grad, = torch.autograd.grad((mean * g_mean).sum() + (var * g_var).sum(), inputs)
+        results.append((mean.detach(), var.detach(), grad))
+    (m1, v1, g1), (m2, v2, g2) = results
+    torch.testing.assert_close(m1, m2, rtol=1e-12, atol=1e-14)
+    torch.testing.assert_close(v1, v2, rtol=1e-10, atol=1e-13)
+    torch.testing.assert_close(g1, g2, rtol=1e-10, atol=1e-12)
+
+    def f(inputs):
+        mean, var = predict_latent(fixed, inputs)
+        return float((mean * g_mean).sum() + (var * g_var).sum())
+
+    torch.testing.assert_close(g1, central_differences(f, xs), rtol=1e-6, atol=1e-8)
 
 
 # ----------------------------------------------------------------------------- training
@@ -374,15 +419,7 @@ def test_fitc_nll_gradient_wrt_pseudo_inputs_matches_central_differences():
         return fitc_negative_log_likelihood(x, y, v, h.log_ell, h.log_alpha, h.log_sigma).sum()
 
     (grad,) = torch.autograd.grad(f(zz), zz)
-    fd = torch.zeros_like(z)
-    eps = 1e-6
-    with torch.no_grad():
-        for i in range(z.shape[0]):
-            for j in range(z.shape[1]):
-                step = torch.zeros_like(z)
-                step[i, j] = eps
-                fd[i, j] = (f(z + step) - f(z - step)) / (2 * eps)
-    torch.testing.assert_close(grad, fd, rtol=1e-5, atol=1e-6)
+    torch.testing.assert_close(grad, central_differences(f, z), rtol=1e-5, atol=1e-6)
 
 
 def test_hand_derived_fitc_pseudo_gradient_matches_autograd_and_differences():
