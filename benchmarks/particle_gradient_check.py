@@ -18,9 +18,11 @@ initial state distribution; ``spread``, MC-PILCO's, spread over the state space)
 * per planning horizon ``H``: the directional derivative of ``J_hat`` along one random unit direction of
   ``theta`` by autograd, and by central differences with steps 1e-3, 1e-5 and 1e-7 (same random numbers,
   no dropout). Smooth: all agree. Rough: only the smallest step agrees with autograd;
-* Adam as the learner runs it (:func:`plugins.mc_pilco.optimise.optimise_particles`, the learner's
-  defaults for learning rate, dropout, window, at most ``--steps`` steps) at the largest horizon: ``J_hat``
-  before and after on the same fixed particles (no dropout), and the window means along the way.
+* Adam as the learner runs it (:func:`plugins.mc_pilco.optimise.optimise_particles` with the learner's
+  learning rate, dropout and its schedule, at most ``--steps`` steps, windows of the learner's 100 steps or a
+  quarter of ``--steps`` if that is fewer, so that a short search still sees the schedule) at the learner's
+  planning horizon: ``J_hat`` before and after on the same fixed particles (no dropout), and the window means
+  along the way.
 
 The model: a GP on ``--n`` transitions of uniformly random rollouts of the real task, hyperparameters set
 from the data's scales (``benchmarks/task_objectives.py``), planned through FITC on ``--basis`` points
