@@ -158,9 +158,15 @@ class RBFController(nn.Module):
         p = input_mean.shape[0]
         chol = torch.linalg.cholesky(input_cov.to(torch.float64) + 1e-12 * torch.eye(p, dtype=torch.float64))
         eps = torch.randn(num_centres, p, generator=generator, dtype=torch.float64)
-        centres = input_mean.to(torch.float64) + eps @ chol.T
-        targets = 0.1 * torch.randn(num_centres, num_controls, generator=generator, dtype=torch.float64)
-        log_ell = torch.log(torch.as_tensor(length_scales, dtype=torch.float64)).expand(num_controls, p)
+        return cls.at_centres(input_mean.to(torch.float64) + eps @ chol.T, num_controls, length_scales, generator)
+
+    @classmethod
+    def at_centres(cls, centres: torch.Tensor, num_controls: int, length_scales: torch.Tensor,
+                   generator: torch.Generator | None = None) -> RBFController:
+        """The reference's targets (0.1 randn, drawn with ``generator``) and length-scales (``(p,)`` shared by
+        all controls, or ``(F, p)``) at given ``centres (n_c, p)``."""
+        targets = 0.1 * torch.randn(centres.shape[0], num_controls, generator=generator, dtype=torch.float64)
+        log_ell = torch.log(torch.as_tensor(length_scales, dtype=torch.float64)).expand(num_controls, centres.shape[1])
         return cls(centres, targets, log_ell)
 
     @property

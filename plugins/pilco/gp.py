@@ -255,7 +255,7 @@ def predict_latent(posterior: GPPosterior, test_inputs: torch.Tensor, fused: boo
     fixed = (posterior.inputs, posterior.beta, posterior.inv_k, posterior.log_ell, posterior.log_alpha)
     if fused and not any(t.requires_grad for t in fixed):  # the model is fixed (policy search, sampling): one fused pass
         return _PredictLatent.apply(test_inputs, posterior.inputs, posterior.beta, posterior.inv_k,
-                                    torch.exp(-posterior.log_ell), torch.exp(2.0 * posterior.log_alpha))
+                                    posterior.log_ell, posterior.log_alpha)
     k = se_ard(posterior.inputs, test_inputs, posterior.log_ell, posterior.log_alpha)  # (E, n, m)
     mean = (posterior.beta[:, :, None] * k).sum(1)
     var = torch.exp(2.0 * posterior.log_alpha)[:, None] - (k * (posterior.inv_k @ k)).sum(1)
@@ -274,27 +274,25 @@ class _PredictLatent(torch.autograd.Function):
     so with ``w_ai = k_ai (g_mean_a beta_ai - 2 g_var_a (A_a k_a)_i)`` the gradient is
     ``sum_a ((w_a @ X) - (sum_i w_ai) x) / ell_a^2``: elementwise work and one ``(m, n) x (n, d)`` product per
     output. ``k`` and ``A k`` are kept from the forward pass (the one ``(m, n) x (n, n)`` product per output).
-    The squared distance is clamped at 0 as in :func:`~plugins.pilco.kernels.se_ard`; its gradient there
-    (a test input on a basis point, to rounding) is taken as if unclamped."""
+    ``k`` is :func:`~plugins.pilco.kernels.se_ard`'s; its squared distance is clamped at 0, and the gradient
+    there (a test input on a basis point, to rounding) is taken as if unclamped."""
 
     @staticmethod
-    def forward(ctx, x, inputs, beta, inv_k, inv_ell, alpha2):
-        b = x * inv_ell[:, None, :]  # (E, m, d)
-        a = inputs * inv_ell[:, None, :]  # (E, n, d)
-        sq = (b * b).sum(-1)[:, :, None] + (a * a).sum(-1)[:, None, :] - 2.0 * b @ a.transpose(-1, -2)  # (E, m, n)
-        k = alpha2[:, None, None] * torch.exp(-0.5 * sq.clamp_min(0.0))
+    def forward(ctx, x, inputs, beta, inv_k, log_ell, log_alpha):
+        k = se_ard(x, inputs, log_ell, log_alpha)  # (E, m, n)
         mean = (k @ beta[:, :, None])[..., 0]  # (E, m)
         ka = k @ inv_k  # (E, m, n): (A k)^T, A symmetric
-        var = alpha2[:, None] - (ka * k).sum(-1)
-        ctx.save_for_backward(x, inputs, beta, inv_ell, k, ka)
+        var = torch.exp(2.0 * log_alpha)[:, None] - (ka * k).sum(-1)
+        ctx.save_for_backward(x, inputs, beta, log_ell, k, ka)
         return mean.T, var.T
 
     @staticmethod
     def backward(ctx, g_mean, g_var):
-        x, inputs, beta, inv_ell, k, ka = ctx.saved_tensors
+        x, inputs, beta, log_ell, k, ka = ctx.saved_tensors
         if not ctx.needs_input_grad[0]:
             return (None,) * 6
         w = k * (g_mean.T[:, :, None] * beta[:, None, :] - 2.0 * g_var.T[:, :, None] * ka)  # (E, m, n)
+        inv_ell = torch.exp(-log_ell)
         grad = ((w @ inputs - w.sum(-1)[:, :, None] * x) * (inv_ell * inv_ell)[:, None, :]).sum(0)  # (m, d)
         return grad, None, None, None, None, None
 

@@ -157,8 +157,7 @@ def initial_controller(spec: TaskSpec, preset: Preset, layout: StateLayout, squa
         base = RBFController.initial(mean, cov, preset.num_centres, f, _initial_length_scales(layout), generator=generator)
     else:
         centres = spread_centres(layout, preset.num_centres, spread, generator)
-        targets = 0.1 * torch.randn(preset.num_centres, f, generator=generator, dtype=torch.float64)
-        base = RBFController(centres, targets, torch.log(_initial_length_scales(layout)).expand(f, p))
+        base = RBFController.at_centres(centres, f, _initial_length_scales(layout), generator)
     return SquashedController(base, spec.action_high, squash)
 
 
