@@ -5,7 +5,7 @@ Usage::
     OMP_NUM_THREADS=1 .venv/bin/python benchmarks/swingup_failure_modes.py --runs RUN_ID [RUN_ID ...]
         --trials 20 25 [--episodes 100] [--seed 777] [--tracking-uri URI] [--out FILE]
 
-For each PILCO run on a swing-up task (``cartpole``, ``double-pendulum``: tasks with a tip distance
+For each PILCO (or mc-pilco) run on a swing-up task (``cartpole``, ``double-pendulum``: tasks with a tip distance
 and a "within ``success_radius`` for ``success_steps`` steps" rule) and each of ``--trials``, the
 policy handed over at that trial is run on ``--episodes`` test episodes from the task's initial
 distribution (the same initial states for every policy). Reported beside the run's own evaluation

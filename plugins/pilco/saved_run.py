@@ -44,7 +44,8 @@ from plugins.pilco.propagate import StateLayout
 
 class SavedPilcoRun:
     """One PILCO (or ``pilco-mean``) run of a tracking store, opened for reading (through
-    :class:`harness.store.RunReader`).
+    :class:`harness.store.RunReader`). An ``mc-pilco`` run opens too: it saves PILCO's controllers and
+    the same episodes, but no ``pilco_settings.json`` and no GP files.
 
     Args:
         run_id: the MLflow run id.
@@ -61,8 +62,8 @@ class SavedPilcoRun:
         self.run = Store(tracking_uri).run(run_id)
         self.params: dict[str, str] = self.run.params
         learner, task_name = self.params.get("learner", ""), self.params.get("task")
-        if not learner.startswith("pilco"):
-            raise CheckpointError(f"run {run_id} is a {learner or 'non-harness'!r} run; this needs a PILCO run")
+        if not (learner.startswith("pilco") or learner == "mc-pilco"):
+            raise CheckpointError(f"run {run_id} is a {learner or 'non-harness'!r} run; this needs a PILCO (or mc-pilco) run")
         if task is not None and task_name != task:
             raise CheckpointError(f"run {run_id} is PILCO on {task_name!r}; this needs a run on {task!r}")
         self.learner_cls = load_learner(learner)

@@ -62,7 +62,7 @@ def test_a_missing_artifact_or_a_non_pilco_run_is_named(stored):
     uri, pilco, other = stored
     with pytest.raises(TrackingError, match="no run 'no-such-run' in sqlite:///"):
         SavedPilcoRun("no-such-run", uri)
-    with pytest.raises(CheckpointError, match="'random' run; this needs a PILCO run"):
+    with pytest.raises(CheckpointError, match=r"'random' run; this needs a PILCO \(or mc-pilco\) run"):
         SavedPilcoRun(other.run_id, uri)
     with pytest.raises(CheckpointError, match="needs a run on 'unicycle'"):
         SavedPilcoRun(pilco.run_id, uri, task="unicycle")
@@ -97,3 +97,46 @@ def test_swingup_failure_modes_pure_parts():
     assert outcome(np.array([1.0, 0.05, 0.3]), radius, solved=False) == "reached, fell away"
     assert outcome(np.array([1.0, 0.3, 0.05]), radius, solved=False) == "reached, cut off"
     assert outcome(np.array([1.0, 0.05, 0.05]), radius, solved=True) == "success"
+
+
+def _tip_cost(task, episode, width: float, steps: int | None = None) -> float:
+    """1 - exp(-d^2 / (2 width^2)) summed over the tip distances d of states 1..steps: the cart-pole's
+    cost written from its geometry, independently of SaturatingCost's linear map."""
+    d = task.tip_distance(episode.states)[1:][:steps]
+    return float(np.sum(1.0 - np.exp(-0.5 * d * d / width**2)))
+
+
+def test_planning_cost_check_sets_each_prediction_beside_the_episode_its_policy_produced(stored, tmp_path):
+    from benchmarks.planning_cost_check import check_run, main
+
+    uri, pilco, _ = stored
+    with SavedPilcoRun(pilco.run_id, uri) as saved:
+        found = check_run(saved)
+        episodes, task = saved.episodes(), saved.task
+        J_after = saved.metric("J_after")
+    assert found["width"] == found["task_width"] == 0.25 and found["random"] == 1
+    # trial 2's policy was only evaluated: only trial 1 has an episode of its own (the run's second)
+    [row] = found["rows"]
+    assert row["trial"] == 1 and row["horizon"] == 12 and row["predicted"] == J_after[1]
+    assert row["realised"] == pytest.approx(_tip_cost(task, episodes[1], 0.25, 12), rel=1e-12)
+    assert row["task"] == pytest.approx(_tip_cost(task, episodes[1], 0.25), rel=1e-12)
+    out = tmp_path / "check.md"
+    main(["--runs", pilco.run_id, "--tracking-uri", uri, "--out", str(out)])
+    assert f"| 1 | 12 | {J_after[1]:.2f} | {row['realised']:.2f} |" in out.read_text()
+
+
+def test_an_mc_pilco_run_opens_for_its_policies_episodes_and_planning_width(tmp_path):
+    from benchmarks.planning_cost_check import check_run
+    from harness.tracking import MlflowTracker, default_tracking_uri
+
+    uri = default_tracking_uri(tmp_path)
+    options = {"num_centres": "4", "particles": "8", "max_steps": "4", "window": "2", "gp_max_evals": "10", "cost_width": "1.0"}
+    result = run(RunConfig("mc-pilco", "cartpole", seed=0, learner_options=options, task_options={"horizon": 10}, max_trials=2,
+                           eval_episodes=1), tracker=MlflowTracker(uri))
+    with SavedPilcoRun(result.run_id, uri) as saved:
+        assert saved.policy_trials() == [1, 2] and saved.policy(2).layout is not None
+        found = check_run(saved)  # no pilco_settings.json: the width is the run's param, the horizon its metric
+        episodes, task = saved.episodes(), saved.task
+    assert found["width"] == 1.0 and found["task_width"] == 0.25
+    [row] = found["rows"]
+    assert row["realised"] == pytest.approx(_tip_cost(task, episodes[1], 1.0, 10), rel=1e-12)

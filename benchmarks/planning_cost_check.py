@@ -1,0 +1,126 @@
+"""Is it the model or the objective? A run's predicted J beside the cost its policy really incurred.
+
+Usage::
+
+    OMP_NUM_THREADS=1 .venv/bin/python benchmarks/planning_cost_check.py --runs RUN_ID [RUN_ID ...]
+        [--tracking-uri URI] [--out FILE]
+
+For each stored ``pilco``, ``pilco-mean`` or ``mc-pilco`` run, trial by trial: the J its policy search
+ended with (``J_after``, the model's prediction of the planning cost over the planning horizon), and
+the cost the same policy's next trial really incurred, computed from the recorded states with the
+planning cost (its width, its horizon) and with the task's own cost (the task's width, the whole
+episode). The run's evaluation cost is shown beside them.
+
+Reading: where the realised planning cost agrees with the prediction while the task's cost stays high,
+the model is right and the search did what it was asked; the objective (width, horizon) does not ask
+for the task. Where the prediction is far below what was realised, the policy exploits the model's
+errors.
+
+The planning width is the run's ``learner.cost_width`` param, else its ``pilco_settings.json``'s
+(``pilco`` runs), else the task's; the planning horizon is the run's ``planning_horizon`` metric at that
+trial, else its settings', else the task's horizon. A trial's episode is the one recorded right after
+its hand-over (the run's ``interaction_episodes`` metric counts those before it).
+"""
+
+from __future__ import annotations
+
+import argparse
+import sys
+import time
+from pathlib import Path
+
+import numpy as np
+
+ROOT = Path(__file__).resolve().parents[1]
+sys.path.insert(0, str(ROOT))
+
+from benchmarks.report_file import command_line, write_report  # noqa: E402
+from harness.errors import CheckpointError, exit_on_error  # noqa: E402
+from harness.task import Episode, SaturatingCost  # noqa: E402
+from plugins.pilco.saved_run import SavedPilcoRun  # noqa: E402
+
+
+def planning_width(run: SavedPilcoRun) -> float:
+    """The cost width the run planned with (see the module docstring for where it is read)."""
+    for value in (run.params.get("learner.cost_width"), _settings(run).get("cost_width")):
+        if value not in (None, "None", ""):
+            return float(value)
+    return float(run.task.spec.cost.width)
+
+
+def _settings(run: SavedPilcoRun) -> dict:
+    try:
+        return run.settings
+    except CheckpointError:  # an mc-pilco run has no pilco_settings.json
+        return {}
+
+
+def realised_cost(cost: SaturatingCost, episode: Episode, horizon: int | None) -> float:
+    """The summed cost of an episode's states after the first (``states[1:horizon + 1]``; all when
+    ``horizon`` is None), as PILCO's J sums the predicted states 1..H."""
+    states = np.asarray(episode.states)[1:]
+    if horizon is not None:
+        states = states[:horizon]
+    return float(np.sum(cost(states)))
+
+
+def check_run(run: SavedPilcoRun) -> dict:
+    """One run's rows: per trial the prediction, the realised planning and task costs, the evaluation."""
+    spec = run.task.spec
+    width = planning_width(run)
+    planning, task_cost = spec.cost.with_width(width), spec.cost
+    predicted, evaluation = run.metric("J_after"), run.metric("eval_cost")
+    horizons = run.metric("planning_horizon")
+    default_horizon = int(_settings(run).get("planning_horizon") or spec.horizon)
+    episodes = run.episodes()
+    before = run.metric("interaction_episodes")  # episodes recorded before each trial's hand-over
+    rows = []
+    for trial in sorted(predicted):
+        index = int(before.get(trial, len(episodes)))  # the episode the handed-over policy produced next
+        if index >= len(episodes):
+            continue  # the policy of the last trial was handed over but not yet applied
+        horizon = int(horizons.get(trial, default_horizon))
+        rows.append({
+            "trial": trial, "horizon": horizon, "predicted": predicted[trial],
+            "realised": realised_cost(planning, episodes[index], horizon),
+            "task": realised_cost(task_cost, episodes[index], None), "eval": evaluation.get(trial),
+        })
+    return {"width": width, "task_width": float(task_cost.width), "rows": rows, "random": int(before.get(1, 0))}
+
+
+def main(argv: list[str] | None = None) -> None:
+    parser = argparse.ArgumentParser(description=__doc__.splitlines()[0])
+    parser.add_argument("--runs", nargs="+", required=True)
+    parser.add_argument("--tracking-uri", default=None)
+    parser.add_argument("--out", type=Path, default=None, help="markdown file (default: print only)")
+    args = parser.parse_args(argv)
+    start = time.perf_counter()
+    lines = ["# Predicted J against the cost really incurred, trial by trial", "",
+             f"Command: `{command_line(__file__, argv, env='OMP_NUM_THREADS=1')}`  ",
+             "Predicted: `J_after` (the model's J of the policy handed over, planning width and horizon). Realised: the "
+             "same cost on the states the policy produced in its next trial. Task: the task's own cost over the whole "
+             "episode. Evaluation: the run's `eval_cost` (mean over its evaluation episodes).", ""]
+    for run_id in args.runs:
+        with SavedPilcoRun(run_id, args.tracking_uri) as run:
+            found = check_run(run)
+            learner, seed, task = run.params.get("learner"), run.params.get("seed"), run.params.get("task")
+        rows = found["rows"]
+        gaps = [r["realised"] - r["predicted"] for r in rows]
+        lines += [f"## `{run_id[:8]}`: {learner} on {task}, seed {seed}", "",
+                  f"Planning width {found['width']:g}, task width {found['task_width']:g}; {found['random']} random "
+                  f"rollout(s) first. Realised minus predicted: median {np.median(gaps):+.2f}, "
+                  f"largest {max(gaps, key=abs):+.2f} over {len(rows)} trials." if rows else "No applied policy.", "",
+                  "| trial | H | predicted J | realised, planning cost | realised, task cost | evaluation cost |",
+                  "|---|---|---|---|---|---|"]
+        for r in rows:
+            ev = "" if r["eval"] is None else f"{r['eval']:.2f}"
+            lines.append(f"| {r['trial']} | {r['horizon']} | {r['predicted']:.2f} | {r['realised']:.2f} | {r['task']:.2f} | {ev} |")
+        lines.append("")
+        print(f"{run_id[:8]}: {len(rows)} trials, realised - predicted median "
+              f"{np.median(gaps) if rows else float('nan'):+.2f}", flush=True)
+    lines.append(f"Wall time {time.perf_counter() - start:.0f} s.")
+    write_report(lines, args.out)
+
+
+if __name__ == "__main__":
+    exit_on_error(main)
