@@ -311,3 +311,25 @@ def test_mc_pilco_starts_from_spread_centres_unless_asked_for_the_reference() ->
     assert initial.base.centres[:, :3].abs().max() < 0.6  # x, dx, dtheta around the initial state (std 0.1)
     assert spread.base.centres[:, :3].abs().max() > 2.0
     assert spread.base.centres.shape == initial.base.centres.shape
+
+
+def test_the_planning_width_narrows_per_trial_to_the_tasks_and_is_logged() -> None:
+    """cost_width=1.0 with cost_narrowing=0.5 on cart-pole (task width 0.25): 1.0, 0.5, 0.25, 0.25, ...; the
+    first trial plans exactly as a run at the constant 1.0 width, the second no longer does."""
+    from harness.discovery import load_task
+
+    spec = load_task("cartpole")().spec
+    learner = McPilco(spec, {"cost_width": 1.0, "cost_narrowing": 0.5})
+    assert [learner.planning_width(t) for t in (1, 2, 3, 4)] == [1.0, 0.5, 0.25, 0.25]
+    assert [McPilco(spec, {"cost_width": 1.0}).planning_width(t) for t in (1, 5)] == [1.0, 1.0]
+    assert McPilco(spec, {"cost_width": 0.1, "cost_narrowing": 0.5}).planning_width(3) == 0.1  # set below the task's: kept
+    assert McPilco(spec, {"cost_narrowing": 0.5}).planning_width(2) == 0.25  # the task's width: nothing to narrow
+    config = RunConfig("mc-pilco", "cartpole", seed=3, learner_options={**TINY, "cost_width": "1.0"}, task_options={"horizon": 10},
+                       max_trials=3, eval_episodes=1)
+    constant, narrowing = MemoryTracker(), MemoryTracker()
+    run(config, tracker=constant)
+    run(dataclasses.replace(config, learner_options={**config.learner_options, "cost_narrowing": "0.5"}), tracker=narrowing)
+    assert [v for _, v in narrowing.metrics["cost_width"]] == [1.0, 0.5, 0.25]
+    assert [v for _, v in constant.metrics["cost_width"]] == [1.0, 1.0, 1.0]
+    assert narrowing.metrics["J_after"][0] == constant.metrics["J_after"][0]
+    assert narrowing.metrics["J_before"][1] != constant.metrics["J_before"][1]
