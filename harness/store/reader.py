@@ -25,6 +25,7 @@ from harness.errors import CheckpointError
 from harness.store import layout
 
 if TYPE_CHECKING:
+    from harness.checkpoint import Checkpoint
     from harness.store.client import Store
     from harness.task import Episode
 
@@ -232,7 +233,32 @@ class RunReader:
         return sorted(t for a in self.artifacts() if a.is_dir and (t := layout.trial_of_folder(a.path)) is not None)
 
     def episodes(self) -> list[Episode]:
-        """Every interaction episode of the run, in the order they happened (random ones first)."""
-        from harness.runner import load_episodes
+        """Every interaction episode of the run, in the order they happened (random ones first).
 
-        return load_episodes(self.file(layout.EPISODES))
+        A run writes its episodes file when it ends; a run still going, or one stopped before that (a
+        sweep stopped with SIGUSR1, a crash), gives the episodes of its newest checkpoint that loads.
+        A :class:`CheckpointError` saying what is missing where the run has neither."""
+        from harness.runner import load_episodes
+        from harness.task import Episode
+
+        try:
+            return load_episodes(self.file(layout.EPISODES))
+        except CheckpointError as missing:
+            checkpoint = self.newest_checkpoint()
+            if checkpoint is None:
+                raise CheckpointError(f"{missing}; nor a checkpoint to read the episodes from") from None
+            return [Episode(**ep) for ep in checkpoint.interaction["episodes"]]
+
+    def newest_checkpoint(self) -> Checkpoint | None:
+        """The run's checkpoint of the highest trial that loads (one cut short by a crash is skipped), or
+        None where it has none."""
+        from harness.checkpoint import PREFIX, load_checkpoint
+        from harness.datafile import trial_files
+
+        names = trial_files((a.path for a in self.artifacts(layout.CHECKPOINTS) if not a.is_dir), PREFIX)
+        for name in reversed(names.values()):
+            try:
+                return load_checkpoint(self.file(name))
+            except CheckpointError:
+                continue
+        return None

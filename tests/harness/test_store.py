@@ -117,3 +117,32 @@ def test_a_missing_artifact_is_named_with_the_run(mlflow_uri):
         stored.file("policies/policy_trial009.policy")
     with pytest.raises(CheckpointError, match="has no policy of trial 9; it has policy_trial001.policy"):
         stored.policy(9)
+
+
+def test_a_run_without_its_episodes_file_gives_those_of_its_newest_checkpoint_that_loads(mlflow_uri):
+    """A run stopped before its end (SIGUSR1, a crash) has no episodes file yet: the reader takes the
+    episodes from the newest checkpoint, skips one cut short, and names what is missing where neither is there."""
+    import numpy as np
+
+    from harness.errors import CheckpointError
+
+    result = run(RunConfig("random", "cartpole", seed=9, max_trials=3, eval_episodes=1), tracker=MlflowTracker(mlflow_uri))
+    stored = Store(mlflow_uri).run(result.run_id)
+    full = stored.episodes()
+    assert [a.path for a in stored.artifacts(layout.CHECKPOINTS)] == ["checkpoints/ckpt_trial001.ckpt", "checkpoints/ckpt_trial002.ckpt"]
+    stored.file(layout.EPISODES).unlink()
+
+    def same(a, b) -> bool:
+        return all(np.array_equal(x.states, y.states) and np.array_equal(x.actions, y.actions) for x, y in zip(a, b, strict=True))
+
+    newest = stored.newest_checkpoint()
+    assert newest.trial == 2 and same(stored.episodes(), full[:len(newest.interaction["episodes"])])
+    ckpt2 = stored.file("checkpoints/ckpt_trial002.ckpt")
+    ckpt2.write_bytes(ckpt2.read_bytes()[:100])  # cut short, as by a crash while writing
+    first = stored.newest_checkpoint()
+    assert first.trial == 1 and same(stored.episodes(), full[:len(first.interaction["episodes"])])
+    assert len(first.interaction["episodes"]) < len(newest.interaction["episodes"])
+    stored.file("checkpoints/ckpt_trial001.ckpt").unlink()
+    ckpt2.unlink()
+    with pytest.raises(CheckpointError, match=r"has no artifact 'episodes/interaction_episodes.npz' .*; nor a checkpoint to read"):
+        stored.episodes()
