@@ -43,7 +43,11 @@ from plugins.pilco.presets import GENERIC, PRESETS, preset_with
 if TYPE_CHECKING:
     import torch
 
+    from plugins.mc_pilco.optimise import ParticleSearchResult
+    from plugins.mc_pilco.particles import ParticleObjective
     from plugins.pilco.controllers import SquashedController
+    from plugins.pilco.gp import GPModel
+    from plugins.pilco.posterior import GPPosterior
 
 
 class McPilco(Learner):
@@ -121,6 +125,37 @@ class McPilco(Learner):
         start = float(self.cost_width or task_width)
         return max(min(task_width, start), start * self.options["cost_narrowing"] ** (trial - 1))
 
+    def new_model(self) -> GPModel:
+        """The GP dynamics model as this learner trains it (PILCO's, with the task preset's FITC threshold)."""
+        from plugins.pilco.gp import GPModel
+
+        o = self.options
+        return GPModel(device=self.device, sparse_threshold=self.preset.sparse_threshold, num_pseudo=self.preset.sparse_threshold,
+                       max_evals_full=o["gp_max_evals"], max_evals_fitc=o["gp_fitc_evals"])
+
+    def search_trial(self, controller: SquashedController, posterior: GPPosterior,
+                     trial: int) -> tuple[ParticleObjective, ParticleSearchResult]:
+        """Trial ``trial``'s policy search: Adam on the particle estimate of J through ``posterior`` (a fixed
+        model on the controller's device) with this learner's options, from ``controller``'s parameters
+        (changed in place). Its random draws are seeded by ``(seed, trial)``. Returns the objective and
+        the search's outcome."""
+        import torch
+
+        from plugins.mc_pilco.optimise import optimise_particles
+        from plugins.mc_pilco.particles import ParticleObjective
+        from plugins.pilco.cost import CostMoments
+
+        spec, o, device = self.spec, self.options, self.device
+        init_mean = torch.as_tensor(np.asarray(spec.init_mean, dtype=np.float64), device=device)
+        init_cov = torch.as_tensor(np.asarray(spec.init_cov, dtype=np.float64), device=device)
+        cost = CostMoments(spec.cost, self.planning_width(trial), device)
+        objective = ParticleObjective(controller, posterior, self.layout, cost, init_mean, init_cov,
+                                      self.horizon, o["particles"], cuda_graph=o["cuda_graph"])
+        search = optimise_particles(objective, max_steps=o["max_steps"], lr=o["lr"], dropout=o["dropout"],
+                                    dropout_step=o["dropout_step"], lr_decay=o["lr_decay"], window=o["window"],
+                                    min_improvement=o["min_improvement"], seed=1000 * self.seed + trial)
+        return objective, search
+
     @classmethod
     def default_limits(cls, spec: TaskSpec) -> tuple[int | None, float | None]:
         """The PILCO task preset's number of trials."""
@@ -137,18 +172,14 @@ class McPilco(Learner):
     def learn(self, interaction: Interaction) -> Iterator[Policy]:
         import torch
 
-        from plugins.mc_pilco.optimise import optimise_particles
-        from plugins.mc_pilco.particles import ParticleObjective
-        from plugins.pilco.cost import CostMoments
-        from plugins.pilco.gp import GPHyperparameters, GPModel
+        from plugins.pilco.gp import GPHyperparameters
         from plugins.pilco.policy import PilcoPolicy, cpu_state_dict, transitions
         from plugins.random_learner import UniformRandomPolicy
 
         spec, o = self.spec, self.options
         torch.set_num_threads(o["threads"] or run_threads())
         device = self.device
-        model = GPModel(device=device, sparse_threshold=self.preset.sparse_threshold, num_pseudo=self.preset.sparse_threshold,
-                        max_evals_full=o["gp_max_evals"], max_evals_fitc=o["gp_fitc_evals"])
+        model = self.new_model()
         controller = self.new_controller(torch.Generator().manual_seed(self.seed))
         controller.to(device)
         resumed = self._resume_state
@@ -161,8 +192,6 @@ class McPilco(Learner):
         else:  # continue right after the hand-over of trial `trial`
             controller.load_state_dict(resumed["controller"])  # copied onto the controller's device
             hyperparameters, trial = GPHyperparameters.from_dict(resumed["hyperparameters"]), resumed["trial"]
-        init_mean = torch.as_tensor(np.asarray(spec.init_mean, dtype=np.float64), device=device)
-        init_cov = torch.as_tensor(np.asarray(spec.init_cov, dtype=np.float64), device=device)
         graph_warned = False
         while True:
             if trial > 0:  # apply the policy handed over last for one trial, record the data
@@ -172,18 +201,13 @@ class McPilco(Learner):
             fit = model.fit(x, y, warm_start=hyperparameters, seed=self.seed + trial)
             hyperparameters = model.hyperparameters
             posterior = model.posterior(max_basis=o["planning_basis"]).detach()
-            cost = CostMoments(spec.cost, self.planning_width(trial), device)
-            objective = ParticleObjective(controller, posterior, self.layout, cost, init_mean, init_cov,
-                                          self.horizon, o["particles"], cuda_graph=o["cuda_graph"])
-            search = optimise_particles(objective, max_steps=o["max_steps"], lr=o["lr"], dropout=o["dropout"],
-                                        dropout_step=o["dropout_step"], lr_decay=o["lr_decay"], window=o["window"],
-                                        min_improvement=o["min_improvement"], seed=1000 * self.seed + trial)
+            objective, search = self.search_trial(controller, posterior, trial)
             self.metrics = {
                 "n_data": float(fit.n_points), "gp_sparse": float(fit.sparse), "gp_nll": fit.nll,
                 "model_train_seconds": fit.seconds, "J_before": search.J_before, "J_after": search.J_after,
                 "policy_opt_seconds": search.seconds, "policy_steps": float(search.steps),
                 "policy_skipped_steps": float(search.skipped), "dropout_reductions": float(search.reductions),
-                "final_dropout": search.final_dropout, "planning_horizon": float(self.horizon), "cost_width": cost.width,
+                "final_dropout": search.final_dropout, "planning_horizon": float(self.horizon), "cost_width": objective.cost.width,
                 "planning_basis": float(posterior.inputs.shape[0]),
                 "policy_parameters": float(sum(p.numel() for p in controller.parameters())),
             }

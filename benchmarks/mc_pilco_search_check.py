@@ -1,0 +1,147 @@
+"""How far does mc-pilco's policy search get? One stored trial's search redone under other settings.
+
+Usage::
+
+    OMP_NUM_THREADS=1 .venv/bin/python benchmarks/mc_pilco_search_check.py --run RUN_ID --trial K
+        --variants "" "max_steps=3000,min_improvement=0" "particles=1600" [--episodes 50] [--seed 777]
+        [--tracking-uri URI] [--out FILE]
+
+Rebuilds the state in which a stored ``mc-pilco`` run searched at trial ``K``: the data of its
+trial-``K`` checkpoint (every episode recorded before that hand-over), the GP fitted as the learner
+fitted it (warm-started from the trial ``K-1`` checkpoint's hyperparameters, the same seed), and the
+controller that search started from (trial ``K-1``'s; the initial one for ``K = 1``). Then each
+variant (learner options over the run's own, ``key=value`` pairs separated by commas; ``""``: the
+run's options) searches from that start with the run's random numbers. The empty variant repeats the
+run's own search: its J after the search is checked against the stored ``J_after`` of trial ``K``.
+
+Each resulting policy is scored where it counts, on ``--episodes`` episodes of the real task (the same
+initial states for every variant): mean task cost and success rate (Wilson 95 % interval).
+"""
+
+from __future__ import annotations
+
+import argparse
+import sys
+import time
+from pathlib import Path
+
+import torch
+
+ROOT = Path(__file__).resolve().parents[1]
+sys.path.insert(0, str(ROOT))
+
+from benchmarks.report_file import command_line, write_report  # noqa: E402
+from benchmarks.swingup_failure_modes import wilson_interval  # noqa: E402
+from harness.errors import CheckpointError, OptionError, exit_on_error  # noqa: E402
+from harness.evaluation import Evaluator  # noqa: E402
+from harness.seeding import derive_seeds  # noqa: E402
+from harness.store import Store  # noqa: E402
+from harness.testrun import task_options  # noqa: E402
+
+
+def parse_variant(text: str) -> dict[str, str]:
+    """``"max_steps=3000,particles=1600"`` -> ``{"max_steps": "3000", "particles": "1600"}`` (``""`` -> ``{}``)."""
+    pairs = [p.strip() for p in text.split(",") if p.strip()]
+    bad = [p for p in pairs if "=" not in p]
+    if bad:
+        raise OptionError(f"variant {text!r}: {bad[0]!r} is not key=value; write e.g. \"max_steps=3000,particles=1600\"")
+    return dict(p.split("=", 1) for p in pairs)
+
+
+def stored_start(run_id: str, trial: int, tracking_uri: str | None):
+    """``(task, run options, data episodes, warm-start hyperparameters or None, start controller state or
+    None, stored J_after of the trial, the learner's seed)`` of a stored ``mc-pilco`` run at trial ``trial``
+    (the learner's seed is derived from the run's, as the runner derives it)."""
+    from harness.checkpoint import load_checkpoint
+    from harness.discovery import load_task
+
+    reader = Store(tracking_uri).run(run_id)
+    params = reader.params
+    if params.get("learner") != "mc-pilco":
+        raise CheckpointError(f"run {run_id} is a {params.get('learner')!r} run; this needs an mc-pilco run")
+
+    def checkpoint(k: int):
+        return load_checkpoint(reader.file(f"checkpoints/ckpt_trial{k:03d}.ckpt"))
+
+    after = checkpoint(trial)
+    before = checkpoint(trial - 1) if trial > 1 else None
+    options = {k[len("learner."):]: v for k, v in params.items() if k.startswith("learner.") and v != "None"}
+    task = load_task(params["task"])(**task_options(params))
+    episodes = after.interaction["episodes"]
+    hyperparameters = before.learner["hyperparameters"] if before else None
+    controller = before.learner["controller"] if before else None
+    stored = reader.history("J_after").get(trial)
+    reader.close()
+    return task, options, episodes, hyperparameters, controller, stored, derive_seeds(int(params["seed"]))["learner"]
+
+
+def search_variant(task, options: dict[str, str], episodes, hyperparameters, controller_state, trial: int, seed: int):
+    """One variant's search from the stored start: ``(search result, policy)``."""
+    from harness.task import Episode
+    from plugins.mc_pilco.learner import McPilco
+    from plugins.pilco.gp import GPHyperparameters
+    from plugins.pilco.policy import PilcoPolicy, transitions
+
+    learner = McPilco(task.spec, {**options, "device": "cpu"}, seed)
+    model = learner.new_model()
+    x, y = transitions([Episode(**ep) for ep in episodes], learner.layout)
+    warm = GPHyperparameters.from_dict(hyperparameters) if hyperparameters is not None else None
+    model.fit(x, y, warm_start=warm, seed=seed + trial)
+    controller = learner.new_controller(torch.Generator().manual_seed(seed))
+    if controller_state is not None:
+        controller.load_state_dict(controller_state)
+    posterior = model.posterior(max_basis=learner.options["planning_basis"]).detach()
+    _, search = learner.search_trial(controller, posterior, trial)
+    return search, PilcoPolicy.snapshot(controller, learner.layout), learner.planning_width(trial)
+
+
+def main(argv: list[str] | None = None) -> None:
+    parser = argparse.ArgumentParser(description=__doc__.splitlines()[0])
+    parser.add_argument("--run", required=True)
+    parser.add_argument("--trial", type=int, required=True)
+    parser.add_argument("--variants", nargs="+", default=[""])
+    parser.add_argument("--episodes", type=int, default=50)
+    parser.add_argument("--seed", type=int, default=777, help="seed of the test episodes' initial states")
+    parser.add_argument("--tracking-uri", default=None)
+    parser.add_argument("--out", type=Path, default=None, help="markdown file (default: print only)")
+    args = parser.parse_args(argv)
+    torch.set_num_threads(1)
+    start = time.perf_counter()
+    variants = [(text, parse_variant(text)) for text in args.variants]
+    task, options, episodes, hyperparameters, controller_state, stored, seed = stored_start(args.run, args.trial, args.tracking_uri)
+    evaluator = Evaluator(task, n_episodes=args.episodes, seed=args.seed)
+    rows = []
+    for text, overrides in variants:
+        search, policy, width = search_variant(task, {**options, **overrides}, episodes, hyperparameters, controller_state,
+                                               args.trial, seed)
+        result = evaluator(policy)
+        successes = round(result.success_rate * args.episodes)
+        rows.append((text or "the run's options", search, width, result.mean_cost, successes))
+        print(f"{text or 'run':40s} steps {search.steps:5d} J {search.J_before:.2f} -> {search.J_after:.2f} "
+              f"real cost {result.mean_cost:.2f} success {successes}/{args.episodes} ({search.seconds:.0f} s)", flush=True)
+    evaluator.close()
+
+    run_options = ", ".join(f"{k}={v}" for k, v in sorted(options.items())) or "defaults"
+    repeat = next((r for r in rows if r[0] == "the run's options"), None)
+    lines = [
+        f"# mc-pilco's policy search redone: run `{args.run[:8]}`, trial {args.trial}", "",
+        f"Command: `{command_line(__file__, argv, env='OMP_NUM_THREADS=1')}`  ",
+        f"Run: {task.spec.name}, learner seed {seed}, options {run_options}. The search starts from the controller of trial "
+        f"{args.trial - 1 if args.trial > 1 else 'none (the initial one)'} on the GP fitted to the {len(episodes)} episodes recorded "
+        f"before trial {args.trial}'s hand-over, as the run did; the run's random numbers. Real: {args.episodes} episodes of "
+        f"the task (seed {args.seed}), its own cost and success rule. One thread, wall time on a shared machine.", "",
+    ]
+    if repeat is not None and stored is not None:
+        lines += [f"The run's own search repeated: J after {repeat[1].J_after:.6f}, stored {stored:.6f}.", ""]
+    lines += ["| variant (learner options over the run's) | planning width | Adam steps | dropout reductions | J_hat before -> after "
+              "| search s | real cost (mean) | real success (95 % CI) |", "|---|---|---|---|---|---|---|---|"]
+    for text, search, width, cost, successes in rows:
+        low, high = wilson_interval(successes, args.episodes)
+        lines.append(f"| {text} | {width:g} | {search.steps} | {search.reductions} | {search.J_before:.2f} -> {search.J_after:.2f} "
+                     f"| {search.seconds:.0f} | {cost:.2f} | {successes}/{args.episodes} ({100 * low:.0f}-{100 * high:.0f} %) |")
+    lines += ["", f"Wall time {time.perf_counter() - start:.0f} s."]
+    write_report(lines, args.out)
+
+
+if __name__ == "__main__":
+    exit_on_error(main)
