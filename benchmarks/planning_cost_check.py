@@ -16,7 +16,8 @@ the model is right and the search did what it was asked; the objective (width, h
 for the task. Where the prediction is far below what was realised, the policy exploits the model's
 errors.
 
-The planning width is the run's ``learner.cost_width`` param, else its ``pilco_settings.json``'s
+The planning width is the run's ``cost_width`` metric at that trial (``mc-pilco`` logs it; it narrows
+with ``cost_narrowing``), else its ``learner.cost_width`` param, else its ``pilco_settings.json``'s
 (``pilco`` runs), else the task's; the planning horizon is the run's ``planning_horizon`` metric at that
 trial, else its settings', else the task's horizon. A trial's episode is the one recorded right after
 its hand-over (the run's ``interaction_episodes`` metric counts those before it).
@@ -68,9 +69,9 @@ def check_run(run: SavedPilcoRun) -> dict:
     """One run's rows: per trial the prediction, the realised planning and task costs, the evaluation."""
     spec = run.task.spec
     width = planning_width(run)
-    planning, task_cost = spec.cost.with_width(width), spec.cost
+    task_cost = spec.cost
     predicted, evaluation = run.metric("J_after"), run.metric("eval_cost")
-    horizons = run.metric("planning_horizon")
+    horizons, widths = run.metric("planning_horizon"), run.metric("cost_width")
     default_horizon = int(_settings(run).get("planning_horizon") or spec.horizon)
     episodes = run.episodes()
     before = run.metric("interaction_episodes")  # episodes recorded before each trial's hand-over
@@ -80,9 +81,10 @@ def check_run(run: SavedPilcoRun) -> dict:
         if index >= len(episodes):
             continue  # the policy of the last trial was handed over but not yet applied
         horizon = int(horizons.get(trial, default_horizon))
+        trial_width = widths.get(trial, width)
         rows.append({
-            "trial": trial, "horizon": horizon, "predicted": predicted[trial],
-            "realised": realised_cost(planning, episodes[index], horizon),
+            "trial": trial, "horizon": horizon, "width": trial_width, "predicted": predicted[trial],
+            "realised": realised_cost(spec.cost.with_width(trial_width), episodes[index], horizon),
             "task": realised_cost(task_cost, episodes[index], None), "eval": evaluation.get(trial),
         })
     return {"width": width, "task_width": float(task_cost.width), "rows": rows, "random": int(before.get(1, 0))}
@@ -107,14 +109,14 @@ def main(argv: list[str] | None = None) -> None:
         rows = found["rows"]
         gaps = [r["realised"] - r["predicted"] for r in rows]
         lines += [f"## `{run_id[:8]}`: {learner} on {task}, seed {seed}", "",
-                  f"Planning width {found['width']:g}, task width {found['task_width']:g}; {found['random']} random "
+                  f"Planning width {found['width']:g} at the start, task width {found['task_width']:g}; {found['random']} random "
                   f"rollout(s) first. Realised minus predicted: median {np.median(gaps):+.2f}, "
                   f"largest {max(gaps, key=abs):+.2f} over {len(rows)} trials." if rows else "No applied policy.", "",
-                  "| trial | H | predicted J | realised, planning cost | realised, task cost | evaluation cost |",
-                  "|---|---|---|---|---|---|"]
+                  "| trial | H | planning width | predicted J | realised, planning cost | realised, task cost | evaluation cost |",
+                  "|---|---|---|---|---|---|---|"]
         for r in rows:
             ev = "" if r["eval"] is None else f"{r['eval']:.2f}"
-            lines.append(f"| {r['trial']} | {r['horizon']} | {r['predicted']:.2f} | {r['realised']:.2f} | {r['task']:.2f} | {ev} |")
+            lines.append(f"| {r['trial']} | {r['horizon']} | {r['width']:g} | {r['predicted']:.2f} | {r['realised']:.2f} | {r['task']:.2f} | {ev} |")
         lines.append("")
         print(f"{run_id[:8]}: {len(rows)} trials, realised - predicted median "
               f"{np.median(gaps) if rows else float('nan'):+.2f}", flush=True)

@@ -69,6 +69,9 @@ class McPilco(Learner):
         Option("centres", str, "spread", "initial RBF centres: spread (MC-PILCO's: states uniform in +-pi per entry, angles "
                "over the circle) or initial (PILCO's reference: drawn from the initial state distribution, where they nearly "
                "coincide and the particle estimate of J is rough in the policy's parameters)", choices=("spread", "initial")),
+        Option("target_scale", float, None, "with spread centres: initial RBF targets uniform in +-target_scale (the "
+               "squashing's argument; MC-PILCO's random weights of +-u_max/2 are about 0.5) instead of PILCO's 0.1 randn "
+               "(default)", low=0.0),
         Option("initial_rollouts", int, None, "random rollouts before learning (default: the PILCO task preset)", low=1),
         Option("random_scale", float, None, "random controls in scale * bounds (default: the PILCO task preset)", low=0.0, high=1.0),
         Option("planning_horizon", int, None, "simulated steps per particle (default: the PILCO preset's, else the task horizon)", low=1),
@@ -110,6 +113,9 @@ class McPilco(Learner):
             self.layout = layout_for(spec, self.preset)
         except ValueError as exc:
             raise OptionError(f"mc-pilco on {spec.name}: {exc}") from None
+        if o["target_scale"] is not None and (o["centres"] != "spread" or self.preset.controller != "rbf"):
+            raise OptionError(f"mc-pilco on {spec.name}: target_scale sets the initial targets of an RBF policy with spread "
+                              "centres; drop it, or use controller=rbf with centres=spread")
         self.horizon = o["planning_horizon"] or preset.planning_horizon or spec.horizon
         self.cost_width = o["cost_width"] or preset.cost_width
         from plugins.pilco.learner import resolve_device
@@ -167,7 +173,8 @@ class McPilco(Learner):
         from plugins.pilco.policy import initial_controller
 
         spread = math.pi if self.options["centres"] == "spread" else None
-        return initial_controller(self.spec, self.preset, self.layout, self.options["squash"], generator, spread=spread)
+        return initial_controller(self.spec, self.preset, self.layout, self.options["squash"], generator, spread=spread,
+                                  target_scale=self.options["target_scale"] if spread is not None else None)
 
     def learn(self, interaction: Interaction) -> Iterator[Policy]:
         import torch

@@ -162,10 +162,15 @@ class RBFController(nn.Module):
 
     @classmethod
     def at_centres(cls, centres: torch.Tensor, num_controls: int, length_scales: torch.Tensor,
-                   generator: torch.Generator | None = None) -> RBFController:
+                   generator: torch.Generator | None = None, target_scale: float | None = None) -> RBFController:
         """The reference's targets (0.1 randn, drawn with ``generator``) and length-scales (``(p,)`` shared by
-        all controls, or ``(F, p)``) at given ``centres (n_c, p)``."""
-        targets = 0.1 * torch.randn(centres.shape[0], num_controls, generator=generator, dtype=torch.float64)
+        all controls, or ``(F, p)``) at given ``centres (n_c, p)``. With ``target_scale`` the targets are
+        uniform in ``[-target_scale, target_scale]`` instead (MC-PILCO's random initial weights)."""
+        shape = (centres.shape[0], num_controls)
+        if target_scale is None:
+            targets = 0.1 * torch.randn(*shape, generator=generator, dtype=torch.float64)
+        else:
+            targets = float(target_scale) * (2.0 * torch.rand(*shape, generator=generator, dtype=torch.float64) - 1.0)
         log_ell = torch.log(torch.as_tensor(length_scales, dtype=torch.float64)).expand(num_controls, centres.shape[1])
         return cls(centres, targets, log_ell)
 

@@ -138,14 +138,17 @@ def _initial_policy_input_moments(spec: TaskSpec, layout: StateLayout) -> tuple[
 
 
 def initial_controller(spec: TaskSpec, preset: Preset, layout: StateLayout, squash: str | None,
-                       generator: torch.Generator, spread: float | None = None) -> SquashedController:
+                       generator: torch.Generator, spread: float | None = None,
+                       target_scale: float | None = None) -> SquashedController:
     """The reference's initial policy: a linear controller with small random weights, or an RBF
     network with ``preset.num_centres`` centres drawn from the initial policy-input distribution;
     squashed to the task's symmetric control bounds (``squash``: trapezoid, sin or None).
 
     ``spread`` (RBF only): the centres are instead the policy inputs of states drawn uniformly from
     ``[-spread, spread]`` in every non-angle entry and over the whole circle in every angle
-    (:func:`spread_centres`); targets and length-scales as the reference's.
+    (:func:`spread_centres`); targets and length-scales as the reference's, unless ``target_scale``
+    (spread centres only) draws the targets uniform in ``[-target_scale, target_scale]`` (MC-PILCO's
+    random initial weights, in units of the squashing's argument).
     """
     if not np.allclose(spec.action_low, -spec.action_high):
         raise ValueError(f"PILCO's squashing needs symmetric control bounds; {spec.name} has {spec.action_low}..{spec.action_high}")
@@ -157,7 +160,7 @@ def initial_controller(spec: TaskSpec, preset: Preset, layout: StateLayout, squa
         base = RBFController.initial(mean, cov, preset.num_centres, f, _initial_length_scales(layout), generator=generator)
     else:
         centres = spread_centres(layout, preset.num_centres, spread, generator)
-        base = RBFController.at_centres(centres, f, _initial_length_scales(layout), generator)
+        base = RBFController.at_centres(centres, f, _initial_length_scales(layout), generator, target_scale)
     return SquashedController(base, spec.action_high, squash)
 
 

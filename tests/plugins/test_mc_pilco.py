@@ -333,3 +333,18 @@ def test_the_planning_width_narrows_per_trial_to_the_tasks_and_is_logged() -> No
     assert [v for _, v in constant.metrics["cost_width"]] == [1.0, 1.0, 1.0]
     assert narrowing.metrics["J_after"][0] == constant.metrics["J_after"][0]
     assert narrowing.metrics["J_before"][1] != constant.metrics["J_before"][1]
+
+
+def test_target_scale_draws_the_initial_rbf_targets_uniformly_and_needs_spread_centres() -> None:
+    from harness.discovery import load_task
+    from harness.errors import OptionError
+
+    spec = load_task("cartpole")().spec
+    default = McPilco(spec, {}, 2).new_controller(torch.Generator().manual_seed(2)).base
+    wide = McPilco(spec, {"target_scale": 0.5}, 2).new_controller(torch.Generator().manual_seed(2)).base
+    assert torch.equal(default.centres, wide.centres)  # the same centres: the targets are drawn after them
+    t = wide.targets.detach()
+    assert t.shape == (50, 1) and float(t.abs().max()) <= 0.5 and float(t.abs().max()) > 0.4
+    assert abs(float(t.mean())) < 0.1 and float(default.targets.detach().abs().max()) < 0.5  # 0.1 randn by default
+    with pytest.raises(OptionError, match="target_scale sets the initial targets of an RBF policy with spread centres"):
+        McPilco(spec, {"target_scale": 0.5, "centres": "initial"}, 2)

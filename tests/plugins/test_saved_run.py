@@ -122,7 +122,7 @@ def test_planning_cost_check_sets_each_prediction_beside_the_episode_its_policy_
     assert row["task"] == pytest.approx(_tip_cost(task, episodes[1], 0.25), rel=1e-12)
     out = tmp_path / "check.md"
     main(["--runs", pilco.run_id, "--tracking-uri", uri, "--out", str(out)])
-    assert f"| 1 | 12 | {J_after[1]:.2f} | {row['realised']:.2f} |" in out.read_text()
+    assert f"| 1 | 12 | 0.25 | {J_after[1]:.2f} | {row['realised']:.2f} |" in out.read_text()
 
 
 def test_an_mc_pilco_run_opens_for_its_policies_episodes_and_planning_width(tmp_path):
@@ -130,13 +130,16 @@ def test_an_mc_pilco_run_opens_for_its_policies_episodes_and_planning_width(tmp_
     from harness.tracking import MlflowTracker, default_tracking_uri
 
     uri = default_tracking_uri(tmp_path)
-    options = {"num_centres": "4", "particles": "8", "max_steps": "4", "window": "2", "gp_max_evals": "10", "cost_width": "1.0"}
-    result = run(RunConfig("mc-pilco", "cartpole", seed=0, learner_options=options, task_options={"horizon": 10}, max_trials=2,
+    options = {"num_centres": "4", "particles": "8", "max_steps": "4", "window": "2", "gp_max_evals": "10", "cost_width": "1.0",
+               "cost_narrowing": "0.5"}
+    result = run(RunConfig("mc-pilco", "cartpole", seed=0, learner_options=options, task_options={"horizon": 10}, max_trials=3,
                            eval_episodes=1), tracker=MlflowTracker(uri))
     with SavedPilcoRun(result.run_id, uri) as saved:
-        assert saved.policy_trials() == [1, 2] and saved.policy(2).layout is not None
-        found = check_run(saved)  # no pilco_settings.json: the width is the run's param, the horizon its metric
+        assert saved.policy_trials() == [1, 2, 3] and saved.policy(3).layout is not None
+        found = check_run(saved)  # no pilco_settings.json: the width is the run's per trial (narrowing), the horizon its metric
         episodes, task = saved.episodes(), saved.task
     assert found["width"] == 1.0 and found["task_width"] == 0.25
-    [row] = found["rows"]
-    assert row["realised"] == pytest.approx(_tip_cost(task, episodes[1], 1.0, 10), rel=1e-12)
+    first, second = found["rows"]
+    assert (first["width"], second["width"]) == (1.0, 0.5)
+    assert first["realised"] == pytest.approx(_tip_cost(task, episodes[1], 1.0, 10), rel=1e-12)
+    assert second["realised"] == pytest.approx(_tip_cost(task, episodes[2], 0.5, 10), rel=1e-12)
