@@ -303,6 +303,7 @@ def run(
     evaluator = Evaluator(prep.task, n_episodes=config.eval_episodes, seed=seeds["evaluation"])
     history: list[dict[str, float]] = []
     first_trial, wall_offset = 1, 0.0
+    held_before: set[int] = set()  # trials after the checkpoint whose records the store already holds
     if checkpoint is not None:
         interaction.load_state_dict(checkpoint.interaction)
         learner.load_state_dict(checkpoint.learner)
@@ -312,7 +313,12 @@ def run(
         wall_offset = history[-1]["wall_seconds"] if history else 0.0
         # params are immutable: the code that ran the trials from here on is a tag of its own
         tracker.set_tags({f"git_sha.resumed_at_trial_{first_trial}": git_sha()})
-        _log_missing_trials(tracker, history)
+        logged = tracker.logged_steps("interaction_seconds")
+        _log_missing_trials(tracker, history, logged)
+        # a trial logged after the newest checkpoint (the last one, which has none, or one between the
+        # checkpoints of a learner that writes them every so often) before the run died: the resume repeats
+        # it exactly, and its records are not logged a second time
+        held_before = {step for step in logged if step > checkpoint.trial}
 
     total, unit = (prep.max_trials, "trials") if prep.max_trials else (prep.budget_seconds, "s")
     progress.start(f"{config.learner} on {config.task}", total, unit)
@@ -363,7 +369,8 @@ def run(
                     if can_checkpoint and (every is None or stop.is_set() or time.perf_counter() - checkpointed_at >= every):
                         store_checkpoint(trial)
                         checkpointed = True
-                    tracker.log_metrics(_trial_metrics(record), step=trial)
+                    if trial not in held_before:
+                        tracker.log_metrics(_trial_metrics(record), step=trial)
                 progress.update({**record, "max_trials": prep.max_trials, "budget_seconds": prep.budget_seconds},
                                 completed=trial if prep.max_trials else interaction.seconds)
                 if result.solved:
@@ -427,10 +434,9 @@ def _trial_metrics(record: Mapping[str, float]) -> dict[str, float]:
     return {k: v for k, v in record.items() if k != "trial"}
 
 
-def _log_missing_trials(tracker: Tracker, history: Sequence[Mapping[str, float]]) -> None:
-    """Log the trials of a resumed checkpoint that the store lacks: the store refused their metrics
-    (a server down, a database file replaced) after their checkpoint was written."""
-    logged = tracker.logged_steps("interaction_seconds")
+def _log_missing_trials(tracker: Tracker, history: Sequence[Mapping[str, float]], logged: set[int]) -> None:
+    """Log the trials of a resumed checkpoint that the store lacks (``logged``: the trials it holds): the
+    store refused their metrics (a server down, a database file replaced) after their checkpoint was written."""
     for record in history:
         if int(record["trial"]) not in logged:
             tracker.log_metrics(_trial_metrics(record), step=int(record["trial"]))

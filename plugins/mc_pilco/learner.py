@@ -16,8 +16,9 @@ PILCO's learner. Its differences from ``pilco``: the policy evaluation (particle
 matching; no Gaussian approximation of the state distribution), the optimiser (Adam on a noisy
 estimate instead of L-BFGS on a closed form), dropout on the RBF policy's weights during the
 search, the RBF centres' initialisation (spread over the state space, as MC-PILCO's, instead of
-drawn from the initial state distribution; option ``centres``), and optionally a planning cost that
-narrows from trial to trial (``cost_narrowing``; the PILCO paper's remark on wider widths early).
+drawn from the initial state distribution; option ``centres``), and as options MC-PILCO's random
+initial weights (``target_scale``) and a planning cost that narrows from trial to trial
+(``cost_narrowing``; the PILCO paper's remark on wider widths early).
 Paper defaults: 400 particles, Adam with learning rate 0.01, dropout 0.25 reduced by 0.125 as the
 search stalls, at most 1500 steps per trial (cart-pole: 2000-4000).
 """

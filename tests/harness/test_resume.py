@@ -11,7 +11,7 @@ from harness.checkpoint import Checkpoint, load_checkpoint, save_checkpoint
 from harness.errors import CheckpointError, TrackingError
 from harness.provenance import git_sha
 from harness.runner import RunConfig, run
-from tests.harness.trackers import InterruptAt, RefusesAt
+from tests.harness.trackers import DiesAfterLogging, InterruptAt, RefusesAt
 from tests.processes import HarnessProcess, run_harness
 
 PILCO_TINY = {"num_centres": "4", "policy_max_evaluations": "6", "gp_max_evals": "20", "plots": "false"}
@@ -198,3 +198,18 @@ def test_sigusr1_stops_bench_after_the_trial_in_progress_and_prints_how_to_resum
     last = max(m.step for m in client.get_metric_history(run_id, "eval_cost"))
     assert f"stopped after trial {last} as asked (SIGUSR1): run {run_id} marked KILLED; continue it with the same command plus --resume {run_id}" in err
     assert max(a.path for a in client.list_artifacts(run_id, "checkpoints")) == f"checkpoints/ckpt_trial{last:03d}.ckpt"
+
+
+def test_a_trial_the_store_holds_but_no_checkpoint_is_repeated_on_resume_and_not_logged_twice():
+    """The run dies after its last trial's metrics are stored (the last trial writes no checkpoint): the
+    resume repeats that trial from trial 2's checkpoint, exactly, and the store keeps one record a trial."""
+    config = RunConfig("random", "cartpole", seed=7, max_trials=3, eval_episodes=1)
+    reference = run(config)
+    tracker = DiesAfterLogging(3)
+    with pytest.raises(KeyboardInterrupt):
+        run(config, tracker=tracker)
+    assert [s for s, _ in tracker.metrics["eval_cost"]] == [1, 2, 3]
+    resumed = run(config, tracker=tracker, resume_run_id=tracker.run_id)
+    assert [s for s, _ in tracker.metrics["eval_cost"]] == [1, 2, 3]
+    assert [v for _, v in tracker.metrics["eval_cost"]] == [h["eval_cost"] for h in reference.history]
+    assert [h["eval_cost"] for h in resumed.history] == [h["eval_cost"] for h in reference.history]

@@ -33,6 +33,15 @@ class InterruptAt(AtTrial):
         raise KeyboardInterrupt
 
 
+class DiesAfterLogging(AtTrial):
+    """Logs trial ``step``'s metrics, then dies (KeyboardInterrupt): the store holds a trial that no
+    checkpoint does when ``step`` has none (the last trial)."""
+
+    def at_trial(self, metrics, step) -> None:
+        MemoryTracker.log_metrics(self, metrics, step)
+        raise KeyboardInterrupt
+
+
 class RefusesAt(AtTrial):
     """A store that refuses trial ``step``'s metrics (a server down, a database file replaced) and
     every write after them until it is :meth:`mended` (the run's end included)."""
