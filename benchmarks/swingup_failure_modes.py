@@ -103,9 +103,12 @@ def main(argv: list[str] | None = None) -> None:
     start = time.perf_counter()
 
     rows, task_name, radius, hold, steps = [], None, None, None, None
+    names: list[str] = []  # the runs' learners, in order of first appearance
     for run_id in args.runs:
         with SavedPilcoRun(run_id, args.tracking_uri, task=task_name) as run:
             task = run.task
+            if run.params["learner"] not in names:
+                names.append(run.params["learner"])
             if not hasattr(task, "tip_distance"):
                 raise CheckpointError(f"run {run_id} is on {run.params['task']!r}, not a swing-up task with a tip distance")
             task_name, radius, hold = run.params["task"], task.success_radius, task.success_steps
@@ -128,8 +131,9 @@ def main(argv: list[str] | None = None) -> None:
     if not rows:
         sys.exit("no policy tested: none of the runs has a policy of the asked trials")
     quarter_steps = [s for s, _ in rows[0][4]["median_distance"]]
+    learners = ", ".join(names)
     lines = [
-        f"# How PILCO's swing-up policies fail ({task_name})", "",
+        f"# How swing-up policies fail ({task_name}: {learners})", "",
         f"Command: `{command_line(__file__, argv, env='OMP_NUM_THREADS=1')}`  ",
         f"Test: {args.episodes} episodes of {steps} steps from the task's initial distribution (seed {args.seed}, the same "
         f"initial states for every policy). Success: tip within {radius * 100:.0f} cm of upright for {hold} consecutive steps. "

@@ -77,6 +77,7 @@ def test_swingup_failure_modes_classes_every_test_episode(stored, tmp_path):
     uri, pilco, _ = stored
     out = tmp_path / "modes.md"
     main(["--runs", pilco.run_id, "--trials", "1", "2", "--episodes", "7", "--tracking-uri", uri, "--out", str(out)])
+    assert out.read_text().startswith("# How swing-up policies fail (cartpole: pilco)")
     rows = [line for line in out.read_text().splitlines() if line.startswith(f"| `{pilco.run_id[:8]}`")]
     assert len(rows) == 2
     for row in rows:
