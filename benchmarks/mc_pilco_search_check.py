@@ -21,6 +21,7 @@ initial states for every variant): mean task cost and success rate (Wilson 95 % 
 from __future__ import annotations
 
 import argparse
+import dataclasses
 import sys
 import time
 from pathlib import Path
@@ -34,9 +35,9 @@ from benchmarks.report_file import command_line, write_report  # noqa: E402
 from benchmarks.swingup_failure_modes import wilson_interval  # noqa: E402
 from harness.errors import CheckpointError, OptionError, exit_on_error  # noqa: E402
 from harness.evaluation import Evaluator  # noqa: E402
+from harness.runner import RunConfig, prepare  # noqa: E402
 from harness.seeding import derive_seeds  # noqa: E402
 from harness.store import Store  # noqa: E402
-from harness.testrun import task_options  # noqa: E402
 
 
 def parse_variant(text: str) -> dict[str, str]:
@@ -49,45 +50,45 @@ def parse_variant(text: str) -> dict[str, str]:
 
 
 def stored_start(run_id: str, trial: int, tracking_uri: str | None):
-    """``(task, run options, data episodes, warm-start hyperparameters or None, start controller state or
-    None, stored J_after of the trial, the learner's seed)`` of a stored ``mc-pilco`` run at trial ``trial``
-    (the learner's seed is derived from the run's, as the runner derives it)."""
-    from harness.checkpoint import load_checkpoint
-    from harness.discovery import load_task
+    """``(run configuration, data episodes, warm-start hyperparameters or None, start controller state or
+    None, stored J_after of the trial)`` of a stored ``mc-pilco`` run at trial ``trial``; the configuration
+    is the checkpoint's own (:func:`~harness.runner.config_from_identity`)."""
+    from harness.checkpoint import checkpoint_name, load_checkpoint
+    from harness.runner import config_from_identity
+    from harness.store import layout
 
     reader = Store(tracking_uri).run(run_id)
-    params = reader.params
-    if params.get("learner") != "mc-pilco":
-        raise CheckpointError(f"run {run_id} is a {params.get('learner')!r} run; this needs an mc-pilco run")
+    learner = reader.params.get("learner")
+    if learner != "mc-pilco":
+        raise CheckpointError(f"run {run_id} is a {learner!r} run; this needs an mc-pilco run")
 
     def checkpoint(k: int):
-        return load_checkpoint(reader.file(f"checkpoints/ckpt_trial{k:03d}.ckpt"))
+        return load_checkpoint(reader.file(f"{layout.CHECKPOINTS}/{checkpoint_name(k)}"))
 
     after = checkpoint(trial)
     before = checkpoint(trial - 1) if trial > 1 else None
-    options = {k[len("learner."):]: v for k, v in params.items() if k.startswith("learner.") and v != "None"}
-    task = load_task(params["task"])(**task_options(params))
-    episodes = after.interaction["episodes"]
-    hyperparameters = before.learner["hyperparameters"] if before else None
-    controller = before.learner["controller"] if before else None
     stored = reader.history("J_after").get(trial)
     reader.close()
-    return task, options, episodes, hyperparameters, controller, stored, derive_seeds(int(params["seed"]))["learner"]
+    return (config_from_identity(after.identity), after.interaction["episodes"],
+            before.learner["hyperparameters"] if before else None, before.learner["controller"] if before else None, stored)
 
 
-def search_variant(task, options: dict[str, str], episodes, hyperparameters, controller_state, trial: int, seed: int):
-    """One variant's search from the stored start: ``(search result, policy)``."""
+def search_variant(config: RunConfig, overrides: dict[str, str], episodes, hyperparameters, controller_state, trial: int):
+    """One variant's search from the stored start, with the run's learner as the runner built it
+    (:func:`~harness.runner.new_learner`: its options with ``overrides`` replaced, on the CPU; its derived
+    seed): ``(search result, policy, planning width)``."""
+    from harness.runner import new_learner, prepare
     from harness.task import Episode
-    from plugins.mc_pilco.learner import McPilco
     from plugins.pilco.gp import GPHyperparameters
     from plugins.pilco.policy import PilcoPolicy, transitions
 
-    learner = McPilco(task.spec, {**options, "device": "cpu"}, seed)
+    options = {**config.learner_options, **overrides, "device": "cpu"}
+    learner = new_learner(prepare(dataclasses.replace(config, learner_options=options)))
     model = learner.new_model()
     x, y = transitions([Episode(**ep) for ep in episodes], learner.layout)
     warm = GPHyperparameters.from_dict(hyperparameters) if hyperparameters is not None else None
-    model.fit(x, y, warm_start=warm, seed=seed + trial)
-    controller = learner.new_controller(torch.Generator().manual_seed(seed))
+    model.fit(x, y, warm_start=warm, seed=learner.seed + trial)
+    controller = learner.new_controller(torch.Generator().manual_seed(learner.seed))
     if controller_state is not None:
         controller.load_state_dict(controller_state)
     posterior = model.posterior(max_basis=learner.options["planning_basis"]).detach()
@@ -108,12 +109,12 @@ def main(argv: list[str] | None = None) -> None:
     torch.set_num_threads(1)
     start = time.perf_counter()
     variants = [(text, parse_variant(text)) for text in args.variants]
-    task, options, episodes, hyperparameters, controller_state, stored, seed = stored_start(args.run, args.trial, args.tracking_uri)
+    config, episodes, hyperparameters, controller_state, stored = stored_start(args.run, args.trial, args.tracking_uri)
+    task, seed = prepare(config).task, derive_seeds(config.seed)["learner"]
     evaluator = Evaluator(task, n_episodes=args.episodes, seed=args.seed)
     rows = []
     for text, overrides in variants:
-        search, policy, width = search_variant(task, {**options, **overrides}, episodes, hyperparameters, controller_state,
-                                               args.trial, seed)
+        search, policy, width = search_variant(config, overrides, episodes, hyperparameters, controller_state, args.trial)
         result = evaluator(policy)
         successes = round(result.success_rate * args.episodes)
         rows.append((text or "the run's options", search, width, result.mean_cost, successes))
@@ -121,7 +122,7 @@ def main(argv: list[str] | None = None) -> None:
               f"real cost {result.mean_cost:.2f} success {successes}/{args.episodes} ({search.seconds:.0f} s)", flush=True)
     evaluator.close()
 
-    run_options = ", ".join(f"{k}={v}" for k, v in sorted(options.items())) or "defaults"
+    run_options = ", ".join(f"{k}={v}" for k, v in sorted(config.learner_options.items())) or "defaults"
     repeat = next((r for r in rows if r[0] == "the run's options"), None)
     lines = [
         f"# mc-pilco's policy search redone: run `{args.run[:8]}`, trial {args.trial}", "",

@@ -6,7 +6,6 @@ import pytest
 
 from harness.errors import OptionError
 from harness.runner import RunConfig, run
-from harness.seeding import derive_seeds
 
 TINY = {"num_centres": "4", "particles": "12", "max_steps": "10", "window": "3", "gp_max_evals": "15"}
 
@@ -18,8 +17,8 @@ def test_the_runs_own_search_is_repeated_exactly_and_a_variant_changes_only_its_
     uri = default_tracking_uri(tmp_path)
     result = run(RunConfig("mc-pilco", "cartpole", seed=4, learner_options=TINY, task_options={"horizon": 10}, max_trials=3,
                            eval_episodes=1), tracker=MlflowTracker(uri))
-    *_, stored, seed = stored_start(result.run_id, 2, uri)
-    assert seed == derive_seeds(4)["learner"] and stored == result.history[1]["J_after"]
+    config, *_, stored = stored_start(result.run_id, 2, uri)
+    assert config.seed == 4 and config.learner_options["max_steps"] == 10 and stored == result.history[1]["J_after"]
     out = tmp_path / "search.md"
     main(["--run", result.run_id, "--trial", "2", "--variants", "", "max_steps=2", "--episodes", "3", "--tracking-uri", uri,
           "--out", str(out)])
