@@ -76,7 +76,7 @@ def stored_start(run_id: str, trial: int, tracking_uri: str | None):
 def search_variant(config: RunConfig, overrides: dict[str, str], episodes, hyperparameters, controller_state, trial: int):
     """One variant's search from the stored start, with the run's learner as the runner built it
     (:func:`~harness.runner.new_learner`: its options with ``overrides`` replaced, on the CPU; its derived
-    seed): ``(search result, policy, planning width)``."""
+    seed): ``(search result, policy, planning cost in words)``."""
     from harness.runner import new_learner, prepare
     from harness.task import Episode
     from plugins.pilco.gp import GPHyperparameters
@@ -93,7 +93,8 @@ def search_variant(config: RunConfig, overrides: dict[str, str], episodes, hyper
         controller.load_state_dict(controller_state)
     posterior = model.posterior(max_basis=learner.options["planning_basis"]).detach()
     _, search = learner.search_trial(controller, posterior, trial)
-    return search, PilcoPolicy.snapshot(controller, learner.layout), learner.planning_width(trial)
+    cost = "MC-PILCO's" if learner.options["cost"] == "paper" else f"width {learner.planning_width(trial):g}"
+    return search, PilcoPolicy.snapshot(controller, learner.layout), cost
 
 
 def main(argv: list[str] | None = None) -> None:
@@ -114,10 +115,10 @@ def main(argv: list[str] | None = None) -> None:
     evaluator = Evaluator(task, n_episodes=args.episodes, seed=args.seed)
     rows = []
     for text, overrides in variants:
-        search, policy, width = search_variant(config, overrides, episodes, hyperparameters, controller_state, args.trial)
+        search, policy, cost_text = search_variant(config, overrides, episodes, hyperparameters, controller_state, args.trial)
         result = evaluator(policy)
         successes = round(result.success_rate * args.episodes)
-        rows.append((text or "the run's options", search, width, result.mean_cost, successes))
+        rows.append((text or "the run's options", search, cost_text, result.mean_cost, successes))
         print(f"{text or 'run':40s} steps {search.steps:5d} J {search.J_before:.2f} -> {search.J_after:.2f} "
               f"real cost {result.mean_cost:.2f} success {successes}/{args.episodes} ({search.seconds:.0f} s)", flush=True)
     evaluator.close()
@@ -134,11 +135,11 @@ def main(argv: list[str] | None = None) -> None:
     ]
     if repeat is not None and stored is not None:
         lines += [f"The run's own search repeated: J after {repeat[1].J_after:.6f}, stored {stored:.6f}.", ""]
-    lines += ["| variant (learner options over the run's) | planning width | Adam steps | dropout reductions | J_hat before -> after "
+    lines += ["| variant (learner options over the run's) | planning cost | Adam steps | dropout reductions | J_hat before -> after "
               "| search s | real cost (mean) | real success (95 % CI) |", "|---|---|---|---|---|---|---|---|"]
-    for text, search, width, cost, successes in rows:
+    for text, search, cost_text, cost, successes in rows:
         low, high = wilson_interval(successes, args.episodes)
-        lines.append(f"| {text} | {width:g} | {search.steps} | {search.reductions} | {search.J_before:.2f} -> {search.J_after:.2f} "
+        lines.append(f"| {text} | {cost_text} | {search.steps} | {search.reductions} | {search.J_before:.2f} -> {search.J_after:.2f} "
                      f"| {search.seconds:.0f} | {cost:.2f} | {successes}/{args.episodes} ({100 * low:.0f}-{100 * high:.0f} %) |")
     lines += ["", f"Wall time {time.perf_counter() - start:.0f} s."]
     write_report(lines, args.out)

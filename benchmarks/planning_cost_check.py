@@ -18,7 +18,8 @@ errors.
 
 The planning width is the run's ``cost_width`` metric at that trial (``mc-pilco`` logs it; it narrows
 with ``cost_narrowing``), else its ``learner.cost_width`` param, else its ``pilco_settings.json``'s
-(``pilco`` runs), else the task's; the planning horizon is the run's ``planning_horizon`` metric at that
+(``pilco`` runs), else the task's; an ``mc-pilco`` run with ``cost=paper`` planned with MC-PILCO's cost
+for the task (:mod:`plugins.mc_pilco.costs`), which has no width. The planning horizon is the run's ``planning_horizon`` metric at that
 trial, else its settings', else the task's horizon. A trial's episode is the one recorded right after
 its hand-over (the run's ``interaction_episodes`` metric counts those before it).
 """
@@ -38,6 +39,7 @@ sys.path.insert(0, str(ROOT))
 from benchmarks.report_file import command_line, write_report  # noqa: E402
 from harness.errors import CheckpointError, exit_on_error  # noqa: E402
 from harness.task import Episode, SaturatingCost  # noqa: E402
+from plugins.mc_pilco.costs import StateCost  # noqa: E402
 from plugins.pilco.saved_run import SavedPilcoRun  # noqa: E402
 
 
@@ -56,7 +58,16 @@ def _settings(run: SavedPilcoRun) -> dict:
         return {}
 
 
-def realised_cost(cost: SaturatingCost, episode: Episode, horizon: int | None) -> float:
+def paper_cost(run: SavedPilcoRun):
+    """The MC-PILCO paper's cost the run planned with (an ``mc-pilco`` run with ``cost=paper``), else ``None``."""
+    if run.params.get("learner.cost") != "paper":
+        return None
+    from plugins.mc_pilco.costs import PAPER_COSTS
+
+    return PAPER_COSTS[run.task.spec.name]
+
+
+def realised_cost(cost: SaturatingCost | StateCost, episode: Episode, horizon: int | None) -> float:
     """The summed cost of an episode's states after the first (``states[1:horizon + 1]``; all when
     ``horizon`` is None), as PILCO's J sums the predicted states 1..H."""
     states = np.asarray(episode.states)[1:]
@@ -75,19 +86,24 @@ def check_run(run: SavedPilcoRun) -> dict:
     default_horizon = int(_settings(run).get("planning_horizon") or spec.horizon)
     episodes = run.episodes()
     before = run.metric("interaction_episodes")  # episodes recorded before each trial's hand-over
-    rows = []
+    paper, rows = paper_cost(run), []
     for trial in sorted(predicted):
         index = int(before.get(trial, len(episodes)))  # the episode the handed-over policy produced next
         if index >= len(episodes):
             continue  # the policy of the last trial was handed over but not yet applied
         horizon = int(horizons.get(trial, default_horizon))
         trial_width = widths.get(trial, width)
+        planned = spec.cost.with_width(trial_width) if paper is None else paper
         rows.append({
-            "trial": trial, "horizon": horizon, "width": trial_width, "predicted": predicted[trial],
-            "realised": realised_cost(spec.cost.with_width(trial_width), episodes[index], horizon),
+            "trial": trial, "horizon": horizon, "width": trial_width if paper is None else None, "predicted": predicted[trial],
+            "realised": realised_cost(planned, episodes[index], horizon),
             "task": realised_cost(task_cost, episodes[index], None), "eval": evaluation.get(trial),
         })
-    return {"width": width, "task_width": float(task_cost.width), "rows": rows, "random": int(before.get(1, 0))}
+    return {"width": width if paper is None else None, "task_width": float(task_cost.width), "rows": rows, "random": int(before.get(1, 0))}
+
+
+def _planning_words(width: float | None) -> str:
+    return "Planned with MC-PILCO's cost (no width)" if width is None else f"Planning width {width:g} at the start"
 
 
 def main(argv: list[str] | None = None) -> None:
@@ -109,14 +125,14 @@ def main(argv: list[str] | None = None) -> None:
         rows = found["rows"]
         gaps = [r["realised"] - r["predicted"] for r in rows]
         lines += [f"## `{run_id[:8]}`: {learner} on {task}, seed {seed}", "",
-                  f"Planning width {found['width']:g} at the start, task width {found['task_width']:g}; {found['random']} random "
+                  f"{_planning_words(found['width'])}, task width {found['task_width']:g}; {found['random']} random "
                   f"rollout(s) first. Realised minus predicted: median {np.median(gaps):+.2f}, "
                   f"largest {max(gaps, key=abs):+.2f} over {len(rows)} trials." if rows else "No applied policy.", "",
                   "| trial | H | planning width | predicted J | realised, planning cost | realised, task cost | evaluation cost |",
                   "|---|---|---|---|---|---|---|"]
         for r in rows:
             ev = "" if r["eval"] is None else f"{r['eval']:.2f}"
-            lines.append(f"| {r['trial']} | {r['horizon']} | {r['width']:g} | {r['predicted']:.2f} | {r['realised']:.2f} | {r['task']:.2f} | {ev} |")
+            lines.append(f"| {r['trial']} | {r['horizon']} | {'MC-PILCO' if r['width'] is None else format(r['width'], 'g')} | {r['predicted']:.2f} | {r['realised']:.2f} | {r['task']:.2f} | {ev} |")
         lines.append("")
         print(f"{run_id[:8]}: {len(rows)} trials, realised - predicted median "
               f"{np.median(gaps) if rows else float('nan'):+.2f}", flush=True)

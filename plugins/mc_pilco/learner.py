@@ -17,7 +17,8 @@ matching; no Gaussian approximation of the state distribution), the optimiser (A
 estimate instead of L-BFGS on a closed form), dropout on the RBF policy's weights during the
 search, the RBF centres' initialisation (spread over the state space, as MC-PILCO's, instead of
 drawn from the initial state distribution; option ``centres``), and as options MC-PILCO's random
-initial weights (``target_scale``) and a planning cost that narrows from trial to trial
+initial weights (``target_scale``), MC-PILCO's own planning cost for the task (``cost=paper``,
+:mod:`plugins.mc_pilco.costs`) and a planning cost that narrows from trial to trial
 (``cost_narrowing``; the PILCO paper's remark on wider widths early).
 Paper defaults: 400 particles, Adam with learning rate 0.01, dropout 0.25 reduced by 0.125 as the
 search stalls, at most 1500 steps per trial (cart-pole: 2000-4000).
@@ -44,9 +45,11 @@ from plugins.pilco.presets import GENERIC, PRESETS, preset_with
 if TYPE_CHECKING:
     import torch
 
+    from plugins.mc_pilco.costs import StateCost
     from plugins.mc_pilco.optimise import ParticleSearchResult
     from plugins.mc_pilco.particles import ParticleObjective
     from plugins.pilco.controllers import SquashedController
+    from plugins.pilco.cost import CostMoments
     from plugins.pilco.gp import GPModel
     from plugins.pilco.posterior import GPPosterior
 
@@ -77,6 +80,9 @@ class McPilco(Learner):
         Option("random_scale", float, None, "random controls in scale * bounds (default: the PILCO task preset)", low=0.0, high=1.0),
         Option("planning_horizon", int, None, "simulated steps per particle (default: the PILCO preset's, else the task horizon)", low=1),
         Option("cost_width", float, None, "cost width used in planning (default: the PILCO preset's, else the task's)", low=1e-6),
+        Option("cost", str, "task", "planning cost: task (the task's cost at the planning width) or paper (MC-PILCO's own "
+               "for the task, plugins.mc_pilco.costs; cart-pole: 1-exp(-((|theta|-pi)/3)^2-(x/1)^2) with theta unwrapped, "
+               "which also charges a pole spun past upright)", choices=("task", "paper")),
         Option("cost_narrowing", float, 1.0, "the planning width of trial t is max(task width, cost_width * cost_narrowing^(t-1)): "
                "a wide cost that gives the first searches a signal far from the target (a spinning pole) and narrows to "
                "the task's, which asks for the precise balance (1: no narrowing)", low=1e-3, high=1.0),
@@ -117,6 +123,15 @@ class McPilco(Learner):
         if o["target_scale"] is not None and (o["centres"] != "spread" or self.preset.controller != "rbf"):
             raise OptionError(f"mc-pilco on {spec.name}: target_scale sets the initial targets of an RBF policy with spread "
                               "centres; drop it, or use controller=rbf with centres=spread")
+        if o["cost"] == "paper":
+            from plugins.mc_pilco.costs import PAPER_COSTS
+
+            if spec.name not in PAPER_COSTS:
+                raise OptionError(f"mc-pilco on {spec.name}: the MC-PILCO paper defines no planning cost for this task "
+                                  f"(cost=paper is there for {', '.join(sorted(PAPER_COSTS))}); use cost=task")
+            if o["cost_width"] is not None or o["cost_narrowing"] != 1.0:
+                raise OptionError(f"mc-pilco on {spec.name}: cost_width and cost_narrowing set the width of the task's "
+                                  "cost; cost=paper has its own length-scales: drop them, or use cost=task")
         self.horizon = o["planning_horizon"] or preset.planning_horizon or spec.horizon
         self.cost_width = o["cost_width"] or preset.cost_width
         from plugins.pilco.learner import resolve_device
@@ -131,6 +146,18 @@ class McPilco(Learner):
         task_width = float(self.spec.cost.width)
         start = float(self.cost_width or task_width)
         return max(min(task_width, start), start * self.options["cost_narrowing"] ** (trial - 1))
+
+    def planning_cost(self, trial: int) -> CostMoments | StateCost:
+        """The cost trial ``trial``'s search plans with: the task's at :meth:`planning_width`, or with option
+        ``cost=paper`` the MC-PILCO paper's for the task (:data:`plugins.mc_pilco.costs.PAPER_COSTS`).
+        Either has ``sample(x)``: the cost at states ``(..., D)`` as a torch tensor."""
+        from plugins.pilco.cost import CostMoments
+
+        if self.options["cost"] == "paper":
+            from plugins.mc_pilco.costs import PAPER_COSTS
+
+            return PAPER_COSTS[self.spec.name]
+        return CostMoments(self.spec.cost, self.planning_width(trial), self.device)
 
     def new_model(self) -> GPModel:
         """The GP dynamics model as this learner trains it (PILCO's, with the task preset's FITC threshold)."""
@@ -150,12 +177,11 @@ class McPilco(Learner):
 
         from plugins.mc_pilco.optimise import optimise_particles
         from plugins.mc_pilco.particles import ParticleObjective
-        from plugins.pilco.cost import CostMoments
 
         spec, o, device = self.spec, self.options, self.device
         init_mean = torch.as_tensor(np.asarray(spec.init_mean, dtype=np.float64), device=device)
         init_cov = torch.as_tensor(np.asarray(spec.init_cov, dtype=np.float64), device=device)
-        cost = CostMoments(spec.cost, self.planning_width(trial), device)
+        cost = self.planning_cost(trial)
         objective = ParticleObjective(controller, posterior, self.layout, cost, init_mean, init_cov,
                                       self.horizon, o["particles"], cuda_graph=o["cuda_graph"])
         search = optimise_particles(objective, max_steps=o["max_steps"], lr=o["lr"], dropout=o["dropout"],
@@ -215,10 +241,11 @@ class McPilco(Learner):
                 "model_train_seconds": fit.seconds, "J_before": search.J_before, "J_after": search.J_after,
                 "policy_opt_seconds": search.seconds, "policy_steps": float(search.steps),
                 "policy_skipped_steps": float(search.skipped), "dropout_reductions": float(search.reductions),
-                "final_dropout": search.final_dropout, "planning_horizon": float(self.horizon), "cost_width": objective.cost.width,
-                "planning_basis": float(posterior.inputs.shape[0]),
+                "final_dropout": search.final_dropout, "planning_horizon": float(self.horizon), "planning_basis": float(posterior.inputs.shape[0]),
                 "policy_parameters": float(sum(p.numel() for p in controller.parameters())),
             }
+            if o["cost"] == "task":
+                self.metrics["cost_width"] = objective.cost.width
             if objective.cuda_graph and device.type == "cuda":  # replayed as a CUDA graph (1) or launched op by op (0)?
                 self.metrics["cuda_graph"] = float(objective.graph_error is None)
                 if objective.graph_error is not None and not graph_warned:

@@ -30,6 +30,7 @@ from dataclasses import dataclass, field
 
 import torch
 
+from plugins.mc_pilco.costs import StateCost
 from plugins.pilco.controllers import RBFController, SquashedController
 from plugins.pilco.cost import CostMoments
 from plugins.pilco.gp import predict_latent
@@ -107,7 +108,9 @@ class ParticleObjective:
         controller: the policy; its parameters are theta.
         posterior: the dynamics GP (``E = D`` outputs, inputs ``[a[model_inputs], u]``), detached.
         layout: the state layout shared with PILCO.
-        cost: the planning cost (the task's cost with the planning width).
+        cost: the planning cost: the task's cost with the planning width, or any cost with ``sample(x)``
+            at states ``(..., D)`` (:class:`~plugins.mc_pilco.costs.StateCost`); only its values at the
+            particles are used, never moments.
         init_mean, init_cov: ``(D,)``, ``(D, D)``.
         horizon: predicted and costed steps ``H``.
         particles: ``N``.
@@ -120,7 +123,7 @@ class ParticleObjective:
     controller: torch.nn.Module
     posterior: GPPosterior
     layout: StateLayout
-    cost: CostMoments
+    cost: CostMoments | StateCost
     init_mean: torch.Tensor
     init_cov: torch.Tensor
     horizon: int

@@ -348,3 +348,55 @@ def test_target_scale_draws_the_initial_rbf_targets_uniformly_and_needs_spread_c
     assert abs(float(t.mean())) < 0.1 and float(default.targets.detach().abs().max()) < 0.5  # 0.1 randn by default
     with pytest.raises(OptionError, match="target_scale sets the initial targets of an RBF policy with spread centres"):
         McPilco(spec, {"target_scale": 0.5, "centres": "initial"}, 2)
+
+
+def test_the_paper_cart_pole_cost_has_the_values_of_its_formula_and_charges_a_spun_pole() -> None:
+    """MC-PILCO's cart-pole cost on the harness's state (x, xdot, thetadot, theta), against the formula
+    written out by hand: 0 upright either way round, 1 - exp(-(pi/3)^2) hanging, 1 - exp(-(2 pi/3)^2) a full
+    turn past upright, the position term with 1 m; torch and NumPy agree; its gradient matches central
+    differences."""
+    import math
+
+    from plugins.mc_pilco.costs import CARTPOLE, PAPER_COSTS
+
+    assert PAPER_COSTS["cartpole"] is CARTPOLE
+    states = np.array([[0.0, 0.3, -1.0, math.pi], [0.0, 0.0, 0.0, -math.pi], [0.0, 0.0, 0.0, 0.0],
+                       [0.0, 0.0, 0.0, 3 * math.pi], [1.0, 0.0, 0.0, math.pi], [-0.5, 2.0, 1.0, 2.0]])
+    by_hand = [0.0, 0.0, 1 - math.exp(-(math.pi / 3) ** 2), 1 - math.exp(-(2 * math.pi / 3) ** 2), 1 - math.exp(-1.0),
+               1 - math.exp(-((2.0 - math.pi) / 3) ** 2 - 0.25)]
+    np.testing.assert_allclose(CARTPOLE(states), by_hand, rtol=1e-14, atol=1e-15)
+    x = torch.tensor(states, dtype=torch.float64, requires_grad=True)
+    values = CARTPOLE.sample(x)
+    np.testing.assert_allclose(values.detach().numpy(), by_hand, rtol=1e-14, atol=1e-15)
+    (grad,) = torch.autograd.grad(values[5], x)
+    h, numeric = 1e-6, np.zeros(4)
+    for i in range(4):
+        step = np.zeros(4)
+        step[i] = h
+        numeric[i] = (CARTPOLE(states[5] + step) - CARTPOLE(states[5] - step)) / (2 * h)
+    np.testing.assert_allclose(grad[5].numpy(), numeric, rtol=1e-7, atol=1e-10)
+    assert grad[5, 1] == 0.0 and grad[5, 2] == 0.0  # the velocities are not costed
+
+
+def test_cost_paper_plans_with_the_mc_pilco_cost_and_refuses_where_it_has_none() -> None:
+    """``cost=paper``: the search's objective is MC-PILCO's cart-pole cost, no ``cost_width`` is logged (there is
+    no width), J_hat differs from the task cost's; a task the paper gives no cost for, or a width set beside
+    it, is a one-line OptionError naming the fix."""
+    from harness.discovery import load_task
+    from harness.errors import OptionError
+    from plugins.mc_pilco.costs import CARTPOLE
+
+    spec = load_task("cartpole")().spec
+    assert McPilco(spec, {"cost": "paper"}).planning_cost(1) is CARTPOLE
+    with pytest.raises(OptionError, match="defines no planning cost for this task.*use cost=task"):
+        McPilco(load_task("unicycle")().spec, {"cost": "paper"})
+    with pytest.raises(OptionError, match="cost=paper has its own length-scales: drop them"):
+        McPilco(spec, {"cost": "paper", "cost_width": 1.0})
+    config = RunConfig("mc-pilco", "cartpole", seed=3, learner_options=TINY, task_options={"horizon": 10},
+                       max_trials=2, eval_episodes=1)
+    task_cost, paper = MemoryTracker(), MemoryTracker()
+    run(config, tracker=task_cost)
+    run(dataclasses.replace(config, learner_options={**TINY, "cost": "paper"}), tracker=paper)
+    assert "cost_width" not in paper.metrics and len(task_cost.metrics["cost_width"]) == 2
+    assert paper.metrics["J_before"][0] != task_cost.metrics["J_before"][0]
+    assert 0.0 < paper.metrics["J_before"][0][1] < 10.0  # 10 steps, each cost in [0, 1)

@@ -144,3 +144,27 @@ def test_an_mc_pilco_run_opens_for_its_policies_episodes_and_planning_width(tmp_
     assert (first["width"], second["width"]) == (1.0, 0.5)
     assert first["realised"] == pytest.approx(_tip_cost(task, episodes[1], 1.0, 10), rel=1e-12)
     assert second["realised"] == pytest.approx(_tip_cost(task, episodes[2], 0.5, 10), rel=1e-12)
+
+
+def test_planning_cost_check_realises_an_mc_pilco_run_with_the_paper_cost_by_its_formula(tmp_path):
+    """An ``mc-pilco`` run with ``cost=paper`` has no width: the realised planning cost is MC-PILCO's cart-pole
+    cost written out here from the recorded angles and positions."""
+    import math
+
+    from benchmarks.planning_cost_check import check_run, main
+    from harness.tracking import MlflowTracker, default_tracking_uri
+
+    uri = default_tracking_uri(tmp_path)
+    options = {"num_centres": "4", "particles": "8", "max_steps": "4", "window": "2", "gp_max_evals": "10", "cost": "paper"}
+    result = run(RunConfig("mc-pilco", "cartpole", seed=0, learner_options=options, task_options={"horizon": 10}, max_trials=2,
+                           eval_episodes=1), tracker=MlflowTracker(uri))
+    with SavedPilcoRun(result.run_id, uri) as saved:
+        found = check_run(saved)
+        states = np.asarray(saved.episodes()[1].states)[1:11]
+    assert found["width"] is None
+    [row] = found["rows"]
+    by_hand = sum(1 - math.exp(-((abs(th) - math.pi) / 3) ** 2 - x**2) for x, th in zip(states[:, 0], states[:, 3]))
+    assert row["width"] is None and row["realised"] == pytest.approx(by_hand, rel=1e-12)
+    out = tmp_path / "check.md"
+    main(["--runs", result.run_id, "--tracking-uri", uri, "--out", str(out)])
+    assert "Planned with MC-PILCO's cost (no width)" in out.read_text() and "| 1 | 10 | MC-PILCO |" in out.read_text()
