@@ -32,7 +32,7 @@ ROOT = Path(__file__).resolve().parents[1]
 sys.path.insert(0, str(ROOT))
 
 from benchmarks.report_file import command_line, write_report  # noqa: E402
-from benchmarks.swingup_failure_modes import wilson_interval  # noqa: E402
+from benchmarks.swingup_failure_modes import add_test_arguments, wilson_interval  # noqa: E402
 from harness.errors import CheckpointError, OptionError, exit_on_error  # noqa: E402
 from harness.evaluation import Evaluator  # noqa: E402
 from harness.runner import RunConfig, prepare  # noqa: E402
@@ -102,10 +102,7 @@ def main(argv: list[str] | None = None) -> None:
     parser.add_argument("--run", required=True)
     parser.add_argument("--trial", type=int, required=True)
     parser.add_argument("--variants", nargs="+", default=[""])
-    parser.add_argument("--episodes", type=int, default=50)
-    parser.add_argument("--seed", type=int, default=777, help="seed of the test episodes' initial states")
-    parser.add_argument("--tracking-uri", default=None)
-    parser.add_argument("--out", type=Path, default=None, help="markdown file (default: print only)")
+    add_test_arguments(parser, episodes=50)
     args = parser.parse_args(argv)
     torch.set_num_threads(1)
     start = time.perf_counter()

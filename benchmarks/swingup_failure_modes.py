@@ -54,10 +54,10 @@ def wilson_interval(successes: int, n: int, z: float = 1.96) -> tuple[float, flo
     return (max(0.0, centre - half), min(1.0, centre + half))
 
 
-def add_test_arguments(parser: argparse.ArgumentParser) -> None:
-    """The options of a benchmark that tests a stored run's policies on the real task: ``--episodes``,
-    ``--seed`` (of the test episodes' initial states), ``--tracking-uri``, ``--out``."""
-    parser.add_argument("--episodes", type=int, default=100)
+def add_test_arguments(parser: argparse.ArgumentParser, episodes: int = 100) -> None:
+    """The options of a benchmark that tests a stored run's policies on the real task: ``--episodes``
+    (default ``episodes``), ``--seed`` (of the test episodes' initial states), ``--tracking-uri``, ``--out``."""
+    parser.add_argument("--episodes", type=int, default=episodes)
     parser.add_argument("--seed", type=int, default=777, help="seed of the test episodes' initial states")
     parser.add_argument("--tracking-uri", default=None)
     parser.add_argument("--out", type=Path, default=None, help="markdown file (default: print only)")

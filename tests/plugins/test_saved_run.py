@@ -168,3 +168,36 @@ def test_planning_cost_check_realises_an_mc_pilco_run_with_the_paper_cost_by_its
     out = tmp_path / "check.md"
     main(["--runs", result.run_id, "--tracking-uri", uri, "--out", str(out)])
     assert "Planned with MC-PILCO's cost (no width)" in out.read_text() and "| 1 | 10 | MC-PILCO |" in out.read_text()
+
+
+def test_paper_cost_of_policies_scores_a_stored_policy_with_both_costs_by_their_formulas(tmp_path):
+    """The stored policy's test episodes, re-run here with the same seed, scored by hand: the cart-pole's tip
+    cost from its geometry, MC-PILCO's from the recorded angles and positions; the horizon override holds."""
+    import math
+
+    from benchmarks.paper_cost_of_policies import main, score_policy
+    from harness.discovery import load_task
+    from harness.evaluation import Evaluator
+    from harness.tracking import MlflowTracker, default_tracking_uri
+
+    uri = default_tracking_uri(tmp_path)
+    options = {"num_centres": "4", "particles": "8", "max_steps": "4", "window": "2", "gp_max_evals": "10"}
+    result = run(RunConfig("mc-pilco", "cartpole", seed=1, learner_options=options, task_options={"horizon": 10}, max_trials=2,
+                           eval_episodes=1), tracker=MlflowTracker(uri))
+    with SavedPilcoRun(result.run_id, uri) as saved:
+        found = score_policy(saved, None, 15, 3, 5)
+        task, policy = saved.task, saved.policy(2)
+    assert found["trial"] == 2 and found["horizon"] == 15
+    longer = load_task("cartpole")(**{**task.options, "horizon": 15})
+    episodes = Evaluator(longer, n_episodes=3, seed=5)(policy).episodes
+    for k, ep in enumerate(episodes):
+        s = np.asarray(ep.states)[1:]
+        assert len(s) == 15
+        paper = sum(1 - math.exp(-((abs(th) - math.pi) / 3) ** 2 - x**2) for x, th in zip(s[:, 0], s[:, 3]))
+        assert found["paper"][k] == pytest.approx(paper, rel=1e-12)
+        assert found["task"][k] == pytest.approx(_tip_cost(longer, ep, 0.25), rel=1e-12)
+    out = tmp_path / "scores.md"
+    main(["--runs", result.run_id, "--episodes", "3", "--seed", "5", "--horizon", "15", "--tracking-uri", uri, "--out", str(out)])
+    assert f"| {found['paper'].mean():.2f} ({found['paper'].min():.2f}-" in out.read_text()
+    with SavedPilcoRun(result.run_id, uri) as saved, pytest.raises(CheckpointError, match="has no policy of trial 7"):
+        score_policy(saved, 7, None, 1, 0)
