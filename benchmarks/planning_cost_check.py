@@ -39,7 +39,7 @@ sys.path.insert(0, str(ROOT))
 from benchmarks.report_file import command_line, write_report  # noqa: E402
 from harness.errors import CheckpointError, exit_on_error  # noqa: E402
 from harness.task import Episode, SaturatingCost  # noqa: E402
-from plugins.mc_pilco.costs import StateCost  # noqa: E402
+from plugins.mc_pilco.costs import PAPER_COSTS, StateCost  # noqa: E402
 from plugins.pilco.saved_run import SavedPilcoRun  # noqa: E402
 
 
@@ -60,11 +60,7 @@ def _settings(run: SavedPilcoRun) -> dict:
 
 def paper_cost(run: SavedPilcoRun):
     """The MC-PILCO paper's cost the run planned with (an ``mc-pilco`` run with ``cost=paper``), else ``None``."""
-    if run.params.get("learner.cost") != "paper":
-        return None
-    from plugins.mc_pilco.costs import PAPER_COSTS
-
-    return PAPER_COSTS[run.task.spec.name]
+    return PAPER_COSTS[run.task.spec.name] if run.params.get("learner.cost") == "paper" else None
 
 
 def realised_cost(cost: SaturatingCost | StateCost, episode: Episode, horizon: int | None) -> float:

@@ -30,7 +30,7 @@ class StateCost:
     where ``folded_k``, else the identity; in ``[0, 1)``.
 
     Attributes:
-        name: what the cost is, in words (logged and shown).
+        name: what the cost is, in words (named in its error messages).
         indices: the state entries costed, ``(K,)``.
         targets: their targets, in the state's units, ``(K,)``.
         lengthscales: their length-scales, in the state's units, ``(K,)``, each > 0.
