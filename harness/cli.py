@@ -15,6 +15,7 @@ Heavy modules (mlflow, torch) are imported only by the commands that need them.
 
 from __future__ import annotations
 
+import difflib
 import os
 import sys
 from typing import Any
@@ -22,7 +23,7 @@ from typing import Any
 import click
 
 from harness import __version__
-from harness.errors import HarnessError, TrackingError
+from harness.errors import HarnessError, PluginNotFoundError, TrackingError
 
 
 class _Context:
@@ -83,15 +84,29 @@ def main(debug: bool) -> None:
 
 
 @main.command("list")
+@click.argument("names", nargs=-1, metavar="[NAME]...")
 @click.option("--options", "show_options", is_flag=True, help="Also list every plugin's options.")
 @_guarded
-def list_command(show_options: bool) -> None:
-    """List learners and tasks, with broken or unavailable plugins and why."""
+def list_command(names: tuple[str, ...], show_options: bool) -> None:
+    """List learners and tasks, with broken or unavailable plugins and why.
+
+    With NAMEs (learners or tasks, e.g. `harness list mc-pilco unicycle`): only those, with their options.
+    """
     from harness.discovery import LEARNER_GROUP, TASK_GROUP, list_plugins
 
-    for title, group in (("Learners", LEARNER_GROUP), ("Tasks", TASK_GROUP)):
+    groups = [(title, list_plugins(group)) for title, group in (("Learners", LEARNER_GROUP), ("Tasks", TASK_GROUP))]
+    if names:
+        known = sorted({p.name for _, plugins in groups for p in plugins})
+        for name in names:
+            if name not in known:
+                close = difflib.get_close_matches(name, known, n=1)
+                hint = f" Did you mean '{close[0]}'?" if close else ""
+                raise PluginNotFoundError(f"no learner or task named '{name}'.{hint} Installed: {', '.join(known) or '(none)'}")
+        groups = [(title, [p for p in plugins if p.name in names]) for title, plugins in groups]
+        groups = [(title, plugins) for title, plugins in groups if plugins]
+        show_options = True
+    for title, plugins in groups:
         click.echo(f"{title}:")
-        plugins = list_plugins(group)
         if not plugins:
             click.echo("  (none installed)")
         width = max((len(p.name) for p in plugins), default=0)

@@ -6,7 +6,6 @@ numbers behind a picture can be checked without reading pixels.
 
 from __future__ import annotations
 
-import math
 import textwrap
 import warnings
 from collections.abc import Sequence

@@ -66,6 +66,26 @@ def test_list_shows_plugins():
     assert "--set scale (float, default 1.0" in result.output
 
 
+def test_list_names_shows_those_plugins_with_their_options():
+    """`harness list NAME...` lists only the named learners and tasks, options included (no --options needed)."""
+    result = CliRunner().invoke(main, ["list", "random", "unicycle"])
+    assert result.exit_code == 0, result.output
+    lines = result.output.splitlines()
+    assert "Learners:" in lines and "Tasks:" in lines
+    named = [line.split()[0] for line in lines if line.startswith("  ") and not line.strip().startswith("--set")]
+    assert named == ["random", "unicycle"]
+    assert "--set scale (float, default 1.0" in result.output and "--set init (str, default 'code'" in result.output
+    only_task = CliRunner().invoke(main, ["list", "cartpole"])
+    assert only_task.exit_code == 0 and "Learners:" not in only_task.output and "--set" in only_task.output
+
+
+def test_list_unknown_name_is_one_line_error():
+    result = CliRunner().invoke(main, ["list", "unicycel"])
+    assert result.exit_code != 0
+    assert "no learner or task named 'unicycel'. Did you mean 'unicycle'?" in result.output
+    assert "Installed:" in result.output and "Traceback" not in result.output
+
+
 @pytest.mark.parametrize(
     "args,message",
     [
