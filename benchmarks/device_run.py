@@ -80,6 +80,9 @@ class FileProgress:
             fetched = self.tracker.fetch_artifact(stored[-1], Path(tempfile.mkdtemp(prefix="device-run-")))
             shutil.move(fetched, self.out.with_suffix(".ckpt"))
 
+    def status(self, text: str) -> None:  # within a trial: not printed (the device's output is read at the end)
+        pass
+
     def finish(self, summary: str) -> None:
         print(summary, flush=True)
         self.write(summary)

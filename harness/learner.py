@@ -25,7 +25,7 @@ Minimal example (uniform random controls)::
 from __future__ import annotations
 
 from abc import ABC, abstractmethod
-from collections.abc import Iterator
+from collections.abc import Callable, Iterator
 from pathlib import Path
 from typing import TYPE_CHECKING, Any, ClassVar, Protocol
 
@@ -96,6 +96,9 @@ class Learner(ABC):
         self.artifacts: list[Path] = []
         #: the state to continue from, set by :meth:`load_state_dict` before :meth:`learn`.
         self._resume_state: dict[str, Any] | None = None
+        #: where :meth:`report_status` goes: set by the harness's runner (``harness bench`` shows it live
+        #: beside its progress bar); ``None``: nowhere (library use, sweep cells)
+        self.status_sink: Callable[[str], None] | None = None
 
     @classmethod
     def option_set(cls) -> OptionSet:
@@ -114,6 +117,14 @@ class Learner(ABC):
     @abstractmethod
     def learn(self, interaction: Interaction) -> Iterator[Policy]:
         """Act through ``interaction`` and yield a policy at every hand-over."""
+
+    def report_status(self, text: str) -> None:
+        """Say what the learner is doing between two hand-overs, e.g. ``"policy search: 80/300 J + dJ,
+        J 41.20"``: a long trial then shows its progress. The text replaces the previous one until the
+        next hand-over; it is shown, not logged. Cheap, but call it at most a few times a second."""
+        sink = getattr(self, "status_sink", None)  # a subclass may not have called Learner.__init__
+        if sink is not None:
+            sink(text)
 
     def state_dict(self) -> dict[str, Any]:
         """The learner's state at its last hand-over, as plain data (:mod:`harness.datafile`: dicts, lists,

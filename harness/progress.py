@@ -6,6 +6,7 @@ from typing import Any, Protocol
 
 from rich.console import Console
 from rich.progress import BarColumn, Progress, TextColumn, TimeElapsedColumn
+from rich.table import Column
 
 from harness.learner_logs import EVALUATION, Logs
 
@@ -14,6 +15,8 @@ class ProgressReporter(Protocol):
     def start(self, title: str, total: float | None, unit: str) -> None: ...
 
     def update(self, record: dict[str, Any], completed: float) -> None: ...
+
+    def status(self, text: str) -> None: ...
 
     def finish(self, summary: str) -> None: ...
 
@@ -25,6 +28,9 @@ class SilentProgress:
         pass
 
     def update(self, record: dict[str, Any], completed: float) -> None:
+        pass
+
+    def status(self, text: str) -> None:
         pass
 
     def finish(self, summary: str) -> None:
@@ -56,8 +62,9 @@ def format_record(record: dict[str, Any], previous_wall: float | None = None, lo
 
 
 class RichProgress:
-    """A rich progress bar (total = trials or budget seconds) and a printed line per hand-over (with
-    what the learner's ``logs`` declare)."""
+    """A rich progress bar (total = trials or budget seconds), what the run is doing now (the learner's
+    :meth:`~harness.learner.Learner.report_status`, the evaluation) after it, and a printed line per
+    hand-over (with what the learner's ``logs`` declare)."""
 
     def __init__(self, console: Console | None = None, logs: Logs = Logs()) -> None:
         self.console = console or Console(stderr=True)
@@ -69,20 +76,28 @@ class RichProgress:
     def start(self, title: str, total: float | None, unit: str) -> None:
         self._progress = Progress(
             TextColumn("[bold]{task.description}"),
-            BarColumn(),
+            BarColumn(bar_width=12),
             TextColumn("{task.completed:.0f}/{task.total:.0f} " + unit),
             TimeElapsedColumn(),
+            # what the run is doing now takes the rest of the line, cut short rather than squeezing the others
+            TextColumn("{task.fields[status]}", markup=False,
+                       table_column=Column(no_wrap=True, overflow="ellipsis", ratio=1)),
             console=self.console,
             transient=True,
+            expand=True,
         )
         self._progress.start()
-        self._task = self._progress.add_task(title, total=total)
+        self._task = self._progress.add_task(title, total=total, status="")
 
     def update(self, record: dict[str, Any], completed: float) -> None:
         assert self._progress is not None
         self._progress.console.print(format_record(record, self._last_wall, self.logs), soft_wrap=True)
         self._last_wall = record.get("wall_seconds")
-        self._progress.update(self._task, completed=completed)
+        self._progress.update(self._task, completed=completed, status="")
+
+    def status(self, text: str) -> None:
+        if self._progress is not None:
+            self._progress.update(self._task, status=text)
 
     def finish(self, summary: str) -> None:
         if self._progress is not None:

@@ -327,6 +327,7 @@ def run(
     stop_reason = "learner finished"
     status = "FAILED"
     failure: BaseException | None = None
+    learner.status_sink = progress.status  # what the learner is doing within a trial, shown live
     generator = learner.learn(interaction)
     stop = StopRequests.listen()  # kill -USR1: stop once the trial in progress is stored
     checkpointed_at = time.perf_counter()
@@ -341,6 +342,7 @@ def run(
     try:
         try:
             for trial, policy in enumerate(generator, start=first_trial):
+                progress.status(f"evaluating the policy of trial {trial} ({config.eval_episodes} episodes)")
                 eval_start = time.perf_counter()
                 result = evaluator(policy)
                 eval_seconds = time.perf_counter() - eval_start

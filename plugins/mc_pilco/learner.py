@@ -184,9 +184,14 @@ class McPilco(Learner):
         cost = self.planning_cost(trial)
         objective = ParticleObjective(controller, posterior, self.layout, cost, init_mean, init_cov,
                                       self.horizon, o["particles"], cuda_graph=o["cuda_graph"])
+
+        def shown(step: int, mean: float, dropout: float) -> None:
+            where = f", J_hat {mean:.2f} (mean of the last {o['window']})" if math.isfinite(mean) else ""
+            self.report_status(f"policy search: Adam step {step}/{o['max_steps']}{where}, dropout {dropout:g}")
+
         search = optimise_particles(objective, max_steps=o["max_steps"], lr=o["lr"], dropout=o["dropout"],
                                     dropout_step=o["dropout_step"], lr_decay=o["lr_decay"], window=o["window"],
-                                    min_improvement=o["min_improvement"], seed=1000 * self.seed + trial)
+                                    min_improvement=o["min_improvement"], seed=1000 * self.seed + trial, on_step=shown)
         return objective, search
 
     @classmethod
@@ -232,6 +237,7 @@ class McPilco(Learner):
                 interaction.rollout(PilcoPolicy.snapshot(controller, self.layout))
             trial += 1
             x, y = transitions(interaction.episodes, self.layout)
+            self.report_status(f"GP training on {x.shape[0]} transitions")
             fit = model.fit(x, y, warm_start=hyperparameters, seed=self.seed + trial)
             hyperparameters = model.hyperparameters
             posterior = model.posterior(max_basis=o["planning_basis"]).detach()

@@ -14,6 +14,7 @@ from __future__ import annotations
 
 import math
 import time
+from collections.abc import Callable
 from dataclasses import dataclass
 
 import numpy as np
@@ -46,8 +47,12 @@ class ParticleSearchResult:
 
 
 def optimise_particles(objective: ParticleObjective, *, max_steps: int, lr: float, dropout: float, dropout_step: float,
-                       lr_decay: float, window: int, min_improvement: float, seed: int) -> ParticleSearchResult:
-    """Minimise ``J_hat`` over the controller's parameters (left at the final values)."""
+                       lr_decay: float, window: int, min_improvement: float, seed: int,
+                       on_step: Callable[[int, float, float], None] | None = None) -> ParticleSearchResult:
+    """Minimise ``J_hat`` over the controller's parameters (left at the final values).
+
+    ``on_step(step, window mean of J_hat or nan before the first window, dropout)``, if given, is
+    called after every Adam step (for progress)."""
     start = time.perf_counter()
     params = objective.parameters()
 
@@ -81,6 +86,8 @@ def optimise_particles(objective: ParticleObjective, *, max_steps: int, lr: floa
                 reductions += 1
                 for group in opt.param_groups:
                     group["lr"] = rate
+        if on_step is not None:
+            on_step(steps, trace[-1] if trace else math.nan, p)
     return ParticleSearchResult(J_before=J_before, J_after=checked(), steps=steps,
                                 skipped=skipped, reductions=reductions, final_dropout=p, final_lr=rate,
                                 seconds=time.perf_counter() - start, trace=trace)

@@ -281,6 +281,7 @@ class Pilco(Learner):
                         self.artifacts.append(self._plot_prediction(predicted, sampled, episode, workdir / f"prediction_trial{trial:03d}.png", trial))
                 trial += 1
                 x, y = transitions(interaction.episodes, self.layout)
+                self.report_status(f"GP training on {x.shape[0]} transitions")
                 fit = model.fit(x, y, warm_start=hyperparameters, restarts=o["gp_restarts"], seed=self.seed + trial)
                 hyperparameters = model.hyperparameters
 
@@ -301,6 +302,8 @@ class Pilco(Learner):
                     predicted = objective.predicted_costs()
                 except (NumericalError, torch.linalg.LinAlgError):  # the kept policy's prediction degenerated: no plot, say so
                     predicted = None
+                if o["sample_particles"]:
+                    self.report_status(f"J_sampled: {o['sample_particles']} particles through the GP")
                 sampled = sampled_costs(objective, o["sample_particles"], seed=1000 * self.seed + trial) if o["sample_particles"] else None
                 self.metrics = self._trial_metrics(fit, search, failed, predicted, objective.num_params)
                 if self.fresh_start_tol is not None:
@@ -345,14 +348,20 @@ class Pilco(Learner):
                                mean_only=self.mean_only, width=self.cost_width, policy_noise_std=self.policy_noise_std,
                                kernel=self.kernel, threads=threads, device=self.device, cuda_graph=self.options["cuda_graph"])
 
-    def search_policy(self, objective: PolicyObjective, kernel: str, threads: int):
-        """One policy search from the controller's current parameters within the preset's budgets."""
+    def search_policy(self, objective: PolicyObjective, kernel: str, threads: int, what: str = "policy search"):
+        """One policy search from the controller's current parameters within the preset's budgets
+        (its progress shown as ``what: k/budget J + dJ, J best``)."""
         from plugins.pilco.moments import COMPILED_KERNELS
         from plugins.pilco.policy_search import optimise_policy
 
+        budget = self.preset.policy_max_evaluations
+
+        def shown(evaluations: int, best: float) -> None:
+            self.report_status(f"{what}: {evaluations}/{budget} J + dJ, J {best:.2f}")
+
         # the compiled contraction runs its own threads; everything else in J is small
         with torch_threads(1 if kernel in COMPILED_KERNELS else threads):
-            return optimise_policy(objective, self.preset.policy_max_iterations, self.preset.policy_max_evaluations)
+            return optimise_policy(objective, self.preset.policy_max_iterations, budget, on_evaluation=shown)
 
     def _fresh_start(self, objective: PolicyObjective, controller: SquashedController, search, trial: int, kernel: str,
                      threads: int) -> tuple[Any, dict[str, Any]]:
@@ -365,7 +374,7 @@ class Pilco(Learner):
         generator = torch.Generator().manual_seed(1_000_003 * (self.seed + 1) + trial)
         controller.load_state_dict(self.new_controller(generator).state_dict())  # copied onto the controller's device
         try:
-            second = self.search_policy(objective, kernel, threads)
+            second = self.search_policy(objective, kernel, threads, "policy search from fresh parameters")
         except NumericalError:
             objective.set_flat(kept_theta)
             return search, {"J": math.nan, "kept": False}

@@ -12,6 +12,7 @@ from __future__ import annotations
 
 import math
 import time
+from collections.abc import Callable
 from dataclasses import dataclass
 
 import numpy as np
@@ -59,8 +60,11 @@ MAX_RESTARTS = 20
 
 
 def optimise_policy(objective: PolicyObjective, max_iterations: int = 150, max_evaluations: int = 300,
-                    memory: int = 10) -> PolicySearchResult:
+                    memory: int = 10, on_evaluation: Callable[[int, float], None] | None = None) -> PolicySearchResult:
     """Minimise J(theta) from the controller's current parameters; leaves the best in the controller.
+
+    ``on_evaluation(evaluations, best J)``, if given, is called after every J + dJ (for progress; the
+    initial evaluation is number 0, as the budget counts them).
 
     L-BFGS-B over ``z = theta / scale``. scipy's first step has unit length in ``z``; where that
     step lands on points whose closed form fails (+inf; e.g. a unicycle policy so strong that the
@@ -82,9 +86,11 @@ def optimise_policy(objective: PolicyObjective, max_iterations: int = 150, max_e
             value, grad = math.inf, np.zeros_like(theta)
         if not (math.isfinite(value) and np.all(np.isfinite(grad))):
             counts["failed"] += 1
-            return math.inf, np.zeros_like(theta)
-        if value < best["J"]:
+            value, grad = math.inf, np.zeros_like(theta)
+        elif value < best["J"]:
             best["J"], best["theta"] = value, theta.copy()
+        if on_evaluation is not None:
+            on_evaluation(counts["evaluations"] - 1, best["J"])
         return value, grad
 
     J0, _ = fun(theta0)

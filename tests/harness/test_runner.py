@@ -4,10 +4,13 @@ from __future__ import annotations
 
 import numpy as np
 import pytest
+from rich.console import Console
 
 from harness import runner
 from harness.errors import InvalidActionError
 from harness.interaction import Interaction
+from harness.learner import Learner
+from harness.progress import RichProgress
 from harness.runner import RunConfig
 from harness.task import Episode
 from harness.testing import LearnerConformance, TaskConformance
@@ -30,6 +33,45 @@ def test_time_to_success_is_interaction_before_first_solved_evaluation(toy_plugi
     assert result.interaction_time_to_success == pytest.approx(3 * 8 * 0.5)
     assert result.trials_to_success == 3
     assert result.trials == 3
+
+
+def test_learner_status_and_evaluation_are_shown_between_hand_overs(toy_plugins):
+    """Learner.report_status reaches the run's progress (``harness bench`` shows it beside the bar), and the
+    runner says when it evaluates; each hand-over line comes after the trial's statuses."""
+    shown = toy.RecordingProgress()
+    runner.run(RunConfig("bad-then-good", "toy-reach", seed=0, max_trials=10, eval_episodes=3), progress=shown)
+    assert shown.events == [
+        "useless rollout 1", "evaluating the policy of trial 1 (3 episodes)", "hand-over 1",
+        "useless rollout 2", "evaluating the policy of trial 2 (3 episodes)", "hand-over 2",
+        "evaluating the policy of trial 3 (3 episodes)", "hand-over 3",
+    ]
+
+
+def test_rich_progress_shows_the_status_until_the_next_hand_over():
+    console = Console(record=True, width=200, force_terminal=False)
+    bar = RichProgress(console=console)
+    bar.start("pilco on cartpole", 10, "trials")
+    try:
+        bar.status("policy search: 12/300 J + dJ, J [41.20]")  # brackets stay text (no rich markup)
+        console.print(bar._progress.get_renderable())
+        bar.update({"trial": 1, "interaction_seconds": 4.0, "eval_success_rate": 0.0, "eval_cost": 30.0, "wall_seconds": 5.0}, 1)
+        console.print(bar._progress.get_renderable())
+    finally:
+        bar.finish("done")
+    bars = [line for line in console.export_text().splitlines() if line.startswith("pilco on cartpole")]
+    assert len(bars) == 2
+    assert bars[0].rstrip().endswith("0/10 trials 0:00:00 policy search: 12/300 J + dJ, J [41.20]")
+    assert "J + dJ" not in bars[1]
+    Learner.report_status(toy.Greedy(toy.ToyReach().spec), "nowhere to go")  # no sink: nothing happens
+    # on an 80-column terminal a long status is cut short; the elapsed time stays whole
+    narrow = Console(record=True, width=80, force_terminal=False)
+    bar = RichProgress(console=narrow)
+    bar.start("pilco on double-pendulum", 40, "trials")
+    bar.status("policy search: 120/300 J + dJ, J 41.20")
+    narrow.print(bar._progress.get_renderable())
+    bar.finish("done")
+    line = narrow.export_text().splitlines()[0].rstrip()
+    assert " 0/40 trials 0:00:00 policy search: " in line and line.endswith("…") and len(line) <= 80
 
 
 def test_evaluation_steps_are_not_counted(toy_plugins):

@@ -11,6 +11,7 @@ import numpy as np
 
 from harness.learner import Learner
 from harness.options import Option
+from harness.progress import SilentProgress
 from harness.task import Episode, SaturatingCost, Task, TaskSpec, check_action
 
 
@@ -84,7 +85,8 @@ class BadThenGood(Learner):
         return Proportional(float(state["gain"]))
 
     def learn(self, interaction):
-        for _ in range(self.options["bad_trials"]):
+        for k in range(self.options["bad_trials"]):
+            self.report_status(f"useless rollout {k + 1}")
             interaction.rollout(Proportional(0.0))
             self.metrics = {"J_after": 1.0}
             yield Proportional(0.0)
@@ -121,3 +123,16 @@ class Crashing(Learner):
         interaction.rollout(Proportional(0.0))
         yield Proportional(0.0)
         raise RuntimeError("boom at trial 2")
+
+
+class RecordingProgress(SilentProgress):
+    """What a run shows (its learner's statuses and the hand-overs), in order, in ``events``."""
+
+    def __init__(self) -> None:
+        self.events: list[str] = []
+
+    def status(self, text: str) -> None:
+        self.events.append(text)
+
+    def update(self, record, completed: float) -> None:
+        self.events.append(f"hand-over {record['trial']}")

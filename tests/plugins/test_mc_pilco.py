@@ -20,6 +20,7 @@ from harness.tracking import MemoryTracker
 from plugins.mc_pilco.learner import McPilco
 from plugins.mc_pilco.optimise import optimise_particles
 from plugins.mc_pilco.particles import ParticleObjective, policy_actions
+from tests.harness.toy import RecordingProgress
 from plugins.pilco.objective import PolicyObjective
 from tests.devices import CUDA, default_device, run_on_cuda
 from tests.harness.trackers import InterruptAt
@@ -163,9 +164,16 @@ def test_same_seed_same_run_and_resume_equals_uninterrupted() -> None:
     config = RunConfig("mc-pilco", "cartpole", seed=2, learner_options=TINY, task_options={"horizon": 10}, max_trials=3,
                        eval_episodes=2)
     strip = lambda h: [{k: v for k, v in r.items() if "seconds" not in k or k == "interaction_seconds"} for r in h]  # noqa: E731
-    tracker = MemoryTracker()
-    reference = run(config, tracker=tracker)
+    tracker, shown = MemoryTracker(), RecordingProgress()
+    reference = run(config, tracker=tracker, progress=shown)
     assert strip(run(config).history) == strip(reference.history)
+    # what `harness bench` shows during a trial: GP training, then every Adam step with the window mean
+    first = shown.events[:shown.events.index("hand-over 1")]
+    assert first[0] == "GP training on 10 transitions"
+    steps = [e for e in first if e.startswith("policy search: Adam step ")]
+    assert len(steps) == int(dict(tracker.metrics["policy_steps"])[1])
+    assert steps[0].startswith("policy search: Adam step 1/12, dropout")
+    assert "J_hat" in steps[3] and "(mean of the last 4)" in steps[3] and "J_hat" not in steps[2]
     assert {"J_before", "J_after", "policy_steps", "final_dropout"} <= set(tracker.metrics)
     interrupted = InterruptAt(2)
     with pytest.raises(KeyboardInterrupt):

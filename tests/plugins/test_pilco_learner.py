@@ -16,16 +16,26 @@ from harness.tracking import MemoryTracker
 from plugins.pilco.learner import PRESETS, Pilco, PilcoMean
 from plugins.pilco.policy import layout_for, transitions
 from tasks.cartpole import CartPole
+from tests.harness.toy import RecordingProgress
 
 TINY = {"num_centres": "5", "policy_max_evaluations": "15", "gp_max_evals": "40", "plots": "true"}
 
 
 def test_pilco_smoke_on_short_cartpole():
-    tracker = MemoryTracker()
+    tracker, shown = MemoryTracker(), RecordingProgress()
     result = run(
         RunConfig("pilco", "cartpole", seed=0, learner_options=TINY, task_options={"horizon": 15}, max_trials=2, eval_episodes=2),
-        tracker=tracker,
+        tracker=tracker, progress=shown,
     )
+    # what `harness bench` shows during a trial: GP training, then the search's count and best J so far
+    first = shown.events[:shown.events.index("hand-over 1")]
+    assert first[0] == "GP training on 15 transitions"
+    searched = [e for e in first if e.startswith("policy search: ")]
+    counts = [int(e.split(": ")[1].split("/")[0]) for e in searched]
+    assert counts == list(range(len(counts))) and searched[-1].startswith(f"policy search: {counts[-1]}/15 J + dJ")
+    assert counts[-1] == int(dict(tracker.metrics["policy_evaluations"])[1]) - 1  # the initial J is number 0
+    assert searched[-1].endswith(f"J {dict(tracker.metrics['J_after'])[1]:.2f}")
+    assert "GP training on 30 transitions" in shown.events
     assert result.trials == 2 and result.interaction_seconds == pytest.approx(2 * 15 * 0.1)
     for step in (1, 2):
         before = dict(tracker.metrics["J_before"])[step]
