@@ -42,6 +42,10 @@ from harness.task import TaskSpec
 from harness.threads import run_threads
 from plugins.pilco.presets import GENERIC, PRESETS, preset_with
 
+#: below this largest kernel value (of 1) between the RBF centres and the mean start state, a fresh run warns
+#: that its policy starts near 0 there (the unicycle's spread centres: 0.0016 in 10 dimensions; cart-pole's 0.43)
+FAR_CENTRES = 0.01
+
 if TYPE_CHECKING:
     import torch
 
@@ -208,6 +212,24 @@ class McPilco(Learner):
         return initial_controller(self.spec, self.preset, self.layout, self.options["squash"], generator, spread=spread,
                                   target_scale=self.options["target_scale"] if spread is not None else None)
 
+    def start_kernel(self, controller: SquashedController) -> float | None:
+        """The largest kernel value between the RBF policy's centres and the mean start state (its policy
+        input), in ``[0, 1]``: near 0, every centre is far from where the runs start, so the controls and
+        their gradients there start near 0. ``None`` for a linear policy."""
+        import torch
+
+        from plugins.pilco.controllers import RBFController
+        from plugins.pilco.kernels import se_ard
+
+        if not isinstance(controller.base, RBFController):
+            return None
+        post = controller.base.posterior()
+        mean = torch.as_tensor(np.asarray(self.spec.init_mean, dtype=np.float64), device=post.inputs.device)[None]
+        inputs = self.layout.augment(mean)[:, self.layout.on("policy_index", mean.device)]
+        with torch.no_grad():
+            k = se_ard(inputs, post.inputs, post.log_ell, post.log_alpha) / torch.exp(2.0 * post.log_alpha)[:, None, None]
+        return float(k.max())
+
     def learn(self, interaction: Interaction) -> Iterator[Policy]:
         import torch
 
@@ -222,6 +244,11 @@ class McPilco(Learner):
         controller = self.new_controller(torch.Generator().manual_seed(self.seed))
         controller.to(device)
         resumed = self._resume_state
+        reach = self.start_kernel(controller) if resumed is None else None
+        if reach is not None and reach < FAR_CENTRES:
+            warnings.warn(f"mc-pilco: the RBF policy's centres are far from the start states (largest kernel value at the "
+                          f"start mean {reach:.2g} < {FAR_CENTRES}): its controls and their gradients start near 0 there; "
+                          "--set learner.centres=initial draws the centres from the start distribution", stacklevel=1)
         if resumed is None:
             scale = self.preset.random_scale
             explore = UniformRandomPolicy(scale * spec.action_low, scale * spec.action_high, self.seed)

@@ -9,6 +9,7 @@ parameters), and the learner against the plugin contract, seeding and resume.
 from __future__ import annotations
 
 import dataclasses
+import warnings
 
 import numpy as np
 import pytest
@@ -20,13 +21,16 @@ from harness.tracking import MemoryTracker
 from plugins.mc_pilco.learner import McPilco
 from plugins.mc_pilco.optimise import optimise_particles
 from plugins.mc_pilco.particles import ParticleObjective, policy_actions
-from tests.harness.toy import RecordingProgress
 from plugins.pilco.objective import PolicyObjective
 from tests.devices import CUDA, default_device, run_on_cuda
+from tests.harness.toy import RecordingProgress
 from tests.harness.trackers import InterruptAt
 from tests.pilco.test_fused_step import _objective
 
 torch.set_num_threads(1)
+
+# TINY's 4 spread centres are far from the start states for some seeds: the run's warning is expected there
+pytestmark = pytest.mark.filterwarnings("ignore:mc-pilco. the RBF policy's centres are far:UserWarning")
 
 TINY = {"num_centres": "4", "particles": "16", "max_steps": "12", "window": "4", "gp_max_evals": "20"}
 
@@ -408,3 +412,41 @@ def test_cost_paper_plans_with_the_mc_pilco_cost_and_refuses_where_it_has_none()
     assert "cost_width" not in paper.metrics and len(task_cost.metrics["cost_width"]) == 2
     assert paper.metrics["J_before"][0] != task_cost.metrics["J_before"][0]
     assert 0.0 < paper.metrics["J_before"][0][1] < 10.0  # 10 steps, each cost in [0, 1)
+
+
+class _StopAtFirstRollout:
+    """An interaction that stops a learner at its first rollout (what happened before it is what is tested)."""
+
+    class Reached(Exception):
+        pass
+
+    def rollout(self, policy, max_steps=None):
+        raise self.Reached
+
+
+def test_far_rbf_centres_are_measured_and_warned_about() -> None:
+    """start_kernel is the largest SE kernel value (of 1) between the RBF centres and the mean start state's policy
+    input, as written out in NumPy; a fresh run whose centres are all far from it (the unicycle's spread centres in 10
+    dimensions) warns with the fix, one whose centres reach it (cart-pole; centres=initial) does not."""
+    from tasks.cartpole import CartPole
+    from tasks.unicycle import Unicycle
+
+    spec = Unicycle().spec
+    learner = McPilco(spec, {"controller": "rbf"}, seed=0)
+    controller = learner.new_controller(torch.Generator().manual_seed(0))
+    centres = controller.base.centres.detach().numpy()
+    ell = np.exp(controller.base.log_ell.detach().numpy())  # (F, p)
+    a = learner.layout.augment(torch.as_tensor(spec.init_mean, dtype=torch.float64)[None])
+    x = a[0, learner.layout.policy_index].numpy()
+    by_hand = max(float(np.exp(-0.5 * (((x - c) / e) ** 2).sum())) for e in ell for c in centres)
+    assert learner.start_kernel(controller) == pytest.approx(by_hand, rel=1e-12) and by_hand < 0.01
+    with pytest.warns(UserWarning, match=r"centres are far from the start states .* --set learner.centres=initial"):
+        with pytest.raises(_StopAtFirstRollout.Reached):
+            next(learner.learn(_StopAtFirstRollout()))
+    for near in (McPilco(spec, {"controller": "rbf", "centres": "initial"}, seed=0), McPilco(CartPole().spec, {}, seed=0)):
+        with warnings.catch_warnings():
+            warnings.simplefilter("error")
+            with pytest.raises(_StopAtFirstRollout.Reached):
+                next(near.learn(_StopAtFirstRollout()))
+    assert McPilco(spec, {"controller": "linear"}, seed=0).start_kernel(
+        McPilco(spec, {"controller": "linear"}, seed=0).new_controller(torch.Generator().manual_seed(0))) is None
