@@ -97,7 +97,7 @@ class Learner(ABC):
         #: the state to continue from, set by :meth:`load_state_dict` before :meth:`learn`.
         self._resume_state: dict[str, Any] | None = None
         #: where :meth:`report_status` goes: set by the harness's runner (``harness bench`` shows it live
-        #: beside its progress bar); ``None``: nowhere (library use, sweep cells)
+        #: beside its progress bar; sweep cells get a silent one); ``None``: nowhere (library use)
         self.status_sink: Callable[[str], None] | None = None
 
     @classmethod
@@ -121,7 +121,8 @@ class Learner(ABC):
     def report_status(self, text: str) -> None:
         """Say what the learner is doing between two hand-overs, e.g. ``"policy search: 80/300 J + dJ,
         J 41.20"``: a long trial then shows its progress. The text replaces the previous one until the
-        next hand-over; it is shown, not logged. Cheap, but call it at most a few times a second."""
+        next hand-over; it is shown, not logged. Cheap: the text is only stored (the bar redraws ~10 times a
+        second), so calling it at every step of a search is fine."""
         sink = getattr(self, "status_sink", None)  # a subclass may not have called Learner.__init__
         if sink is not None:
             sink(text)
