@@ -170,6 +170,7 @@ def test_planning_cost_check_realises_an_mc_pilco_run_with_the_paper_cost_by_its
     assert "Planned with MC-PILCO's cost (no width)" in out.read_text() and "| 1 | 10 | MC-PILCO |" in out.read_text()
 
 
+@pytest.mark.filterwarnings("ignore:mc-pilco. the RBF policy's centres are far:UserWarning")  # its tiny mc-pilco run
 def test_paper_cost_of_policies_scores_a_stored_policy_with_both_costs_by_their_formulas(tmp_path):
     """The stored policy's test episodes, re-run here with the same seed, scored by hand: the cart-pole's tip
     cost from its geometry, MC-PILCO's from the recorded angles and positions; the horizon override holds."""
