@@ -124,13 +124,16 @@ class Pilco(Learner):
         Option("squash", str, "trapezoid", "squashing to the bounds", choices=("trapezoid", "sin")),
         Option("initial_rollouts", int, None, "random rollouts before learning (default: task preset)", low=1),
         Option("random_scale", float, None, "random controls in scale * bounds (default: task preset)", low=0.0, high=1.0),
-        Option("planning_horizon", int, None, "predicted steps in J (default: the task preset's, else the task horizon)", low=1),
+        Option("planning_horizon", int, None, "predicted steps in J (default: the task preset's (unicycle: 20, growing), else "
+               "the task horizon)", low=1),
         Option("cost_width", float, None, "cost width used in planning (default: the task preset's, else the task's)", low=1e-6),
         Option("grow_horizon_below", float, None, "double the planning horizon (up to the task's) after a policy search "
-               "whose predicted mean cost per step, J/horizon, is below this (a horizon schedule; default: off)", low=0.0),
+               "whose predicted mean cost per step, J/horizon, is below this (a horizon schedule; default: the task "
+               "preset's, unicycle 0.05, else off; 0 = off)", low=0.0),
         Option("plan_with_noise", bool, False, "planning feeds the policy the task's measurement noise (its input "
                "N(m, S + N) as it acts on noisy observations; needs a policy on raw states, e.g. the unicycle's; "
-               "default: off, the policy sees the latent state as in the reference code's last version)"),
+               "default: the task preset's, on for the unicycle; else off, the policy sees the latent state as in the "
+               "reference code's last version)"),
         Option("sparse_threshold", int, None, "FITC above this many data points (default: task preset)", low=1),
         Option("num_pseudo", int, None, "FITC pseudo-inputs (default: the sparse threshold)", low=1),
         Option("planning_basis", int, None, "plan (J, dJ) with at most this many of the model's basis points (FITC "
@@ -175,12 +178,17 @@ class Pilco(Learner):
         preset = PRESETS.get(spec.name, GENERIC)
         self.preset = preset_with(spec.name, o)
         self.layout = layout_for(spec, self.preset)
-        self.horizon = o["planning_horizon"] or preset.planning_horizon or spec.horizon
+        schedule = preset.horizon_schedule
+        self.horizon = o["planning_horizon"] or preset.planning_horizon or (schedule[0] if schedule else spec.horizon)
+        grow = o["grow_horizon_below"] if o["grow_horizon_below"] is not None else (schedule[1] if schedule else None)
+        self.grow_horizon_below = grow or None  # 0: off
         self.cost_width = o["cost_width"] or preset.cost_width
         self.num_pseudo = o["num_pseudo"] or self.preset.sparse_threshold
         tol = o["fresh_start_tol"] if o["fresh_start_tol"] is not None else preset.fresh_start_tol
         self.fresh_start_tol = tol or None  # 0: off
-        self.policy_noise_std = spec.measurement_noise_std if o["plan_with_noise"] else None
+        # a bool option cannot say "unset": the preset's value holds unless the option was given
+        noise = o["plan_with_noise"] if "plan_with_noise" in (options or {}) else preset.plan_with_noise
+        self.policy_noise_std = spec.measurement_noise_std if noise else None
         if self.policy_noise_std is not None:
             try:
                 self.layout.policy_noise_cov(self.policy_noise_std)
@@ -201,7 +209,8 @@ class Pilco(Learner):
                                              "policy_max_iterations", "policy_max_evaluations")})
         used.update(planning_horizon=self.horizon, cost_width=self.cost_width or self.spec.cost.width, num_pseudo=self.num_pseudo,
                     gp_hyper_subset=self.options["gp_hyper_subset"] or self.preset.sparse_threshold,
-                    threads=self.options["threads"] or run_threads(), kernel=self.kernel, fresh_start_tol=self.fresh_start_tol)
+                    threads=self.options["threads"] or run_threads(), kernel=self.kernel, fresh_start_tol=self.fresh_start_tol,
+                    grow_horizon_below=self.grow_horizon_below, plan_with_noise=self.policy_noise_std is not None)
         return used
 
     @classmethod
@@ -323,7 +332,7 @@ class Pilco(Learner):
                 self.artifacts += self._save_model(workdir, trial, model, fit)
                 if trial == 1:
                     self.artifacts.append(self._save_settings(workdir))
-                self.horizon = next_planning_horizon(self.horizon, spec.horizon, search, o["grow_horizon_below"])
+                self.horizon = next_planning_horizon(self.horizon, spec.horizon, search, self.grow_horizon_below)
                 self._state = {
                     "controller": cpu_state_dict(controller),
                     "hyperparameters": hyperparameters.to("cpu").as_dict(),

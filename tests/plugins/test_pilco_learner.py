@@ -136,9 +136,34 @@ def test_plan_with_noise_uses_the_tasks_measurement_noise_and_refuses_trig_polic
     spec = Unicycle().spec
     learner = Pilco(spec, {"plan_with_noise": "true"}, seed=0)
     np.testing.assert_array_equal(learner.policy_noise_std, spec.measurement_noise_std)
-    assert Pilco(spec, {}, seed=0).policy_noise_std is None
+    assert Pilco(spec, {"plan_with_noise": "false"}, seed=0).policy_noise_std is None
     with pytest.raises(OptionError, match="plan_with_noise on cartpole: .*sin/cos of angles.*drop --set plan_with_noise=true"):
         Pilco(CartPole().spec, {"plan_with_noise": "true"}, seed=0)
+
+
+def test_the_unicycles_preset_plans_with_noise_over_a_growing_horizon_and_each_part_can_be_switched_off():
+    """The unicycle's defaults are the settings its tuning seeds were run with (planning noise, 20 steps doubled
+    below 0.05 per step): a default run logs what such a run with those options given logs, so both share a
+    configuration. Each is an option that can be given (``plan_with_noise=false``, ``grow_horizon_below=0``);
+    other tasks keep the reference's settings, and mc-pilco ignores the PILCO learner's schedule."""
+    from plugins.mc_pilco.learner import McPilco
+    from tasks.unicycle import Unicycle
+
+    spec = Unicycle().spec
+    default = Pilco(spec, {}, seed=0)
+    assert default.horizon == 20 and default.grow_horizon_below == 0.05
+    np.testing.assert_array_equal(default.policy_noise_std, spec.measurement_noise_std)
+    given = Pilco(spec, {"plan_with_noise": "true", "planning_horizon": "20", "grow_horizon_below": "0.05"}, seed=0)
+    keys = ("plan_with_noise", "planning_horizon", "grow_horizon_below")
+    assert {k: default.options_used()[k] for k in keys} == {k: given.options_used()[k] for k in keys} == {
+        "plan_with_noise": True, "planning_horizon": 20, "grow_horizon_below": 0.05}
+    off = Pilco(spec, {"plan_with_noise": "false", "grow_horizon_below": "0", "planning_horizon": "67"}, seed=0)
+    assert off.policy_noise_std is None and off.grow_horizon_below is None and off.horizon == 67
+    assert {k: off.options_used()[k] for k in keys} == {"plan_with_noise": False, "planning_horizon": 67, "grow_horizon_below": None}
+    cartpole = Pilco(CartPole().spec, {}, seed=0)
+    assert cartpole.policy_noise_std is None and cartpole.grow_horizon_below is None
+    assert cartpole.options_used()["plan_with_noise"] is False
+    assert McPilco(spec, {}, seed=0).horizon == spec.horizon
 
 
 def test_horizon_schedule_doubles_up_to_the_task_horizon_when_the_policy_does_well():
