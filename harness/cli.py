@@ -236,7 +236,7 @@ def eval_command(run_id: str, episodes: int, seed: int, trial: int | None, out_d
 def store_group() -> None:
     """Maintain a tracking store: convert runs of older harness versions (migrate); a local store copied
     to another path (a clone): relocate it, check it, describe its runs' files; list the checkpoints a clone
-    needs to resume the runs stopped before their limit."""
+    needs to resume the runs stopped before their limit, and the policies it needs to test the runs."""
 
 
 @store_group.command("migrate")
@@ -487,6 +487,31 @@ def store_describe_command(tracking_uri: str | None) -> None:
         kept += sum(a.size for a in run.all_artifacts() if committed(a.path))
     click.echo(f"{store.uri}: {len(runs)} run descriptions say what is committed; the committed kinds of files come to "
                f"{kept / 1e6:.1f} MB here (budget {BUDGET_BYTES / 1e6:.0f} MB, results/README.md)")
+
+
+@store_group.command("policies")
+@_store_uri
+@click.option("--paths", is_flag=True, help="Print only the local files to commit, one per line (for `git add -f`).")
+@_guarded
+def store_policies_command(tracking_uri: str | None, paths: bool) -> None:
+    """List each run's last saved policy (what `harness eval RUN` tests): the files a clone needs to test the runs."""
+    from harness.store import Store
+    from harness.store.committed import MAX_POLICY_BYTES, last_policies
+
+    store = Store(tracking_uri)
+    found = last_policies(store.search(None))
+    keep = [p for p in found if p.fits and p.file is not None]
+    if paths:
+        for p in keep:
+            click.echo(os.path.relpath(p.file))
+        return
+    for p in found:
+        size = f"{p.size / 1e3:.1f} kB" if p.fits else f"{p.size / 1e3:.0f} kB, over the {MAX_POLICY_BYTES / 1e3:.0f} kB a committed policy may have: stays on this machine"
+        click.echo(f"{p.run_id[:8]} {p.status:8} {p.name}: {p.policy} ({size})")
+    uri = f" --tracking-uri {tracking_uri}" if tracking_uri else ""
+    click.echo(f"{store.uri}: {len(found)} runs have a saved policy here, {len(keep)} small enough to commit "
+               f"({sum(p.size for p in keep) / 1e3:.0f} kB). Commit them with the store, no run writing: "
+               f"git add -f $(harness store policies --paths{uri})")
 
 
 @store_group.command("checkpoints")

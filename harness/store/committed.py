@@ -8,9 +8,10 @@ files on the comparison runs (:data:`COMMITTED_SUFFIXES`). Per-trial plots (``.p
 folder, e.g. PILCO's ``prediction_trial007.png``, ~50 kB each) are not: at one per trial they filled
 the budget; a report copies the last one of each row's representative run into ``results/`` and onto its
 comparison run, which are committed. The repository's ``.gitignore`` lets exactly these through.
-Policies, checkpoints, trained models and episode data stay on the machine that ran the run, but for the
-newest checkpoint of a run stopped before its limit, which is added by hand so that it can be resumed
-(``results/README.md``). The budget: no committed file over
+Policies, checkpoints, trained models and episode data stay on the machine that ran the run, but for two
+kinds of file added by hand (``results/README.md``): the newest checkpoint of a run stopped before its limit, so
+that it can be resumed (:func:`stopped_runs`), and each run's last policy up to :data:`MAX_POLICY_BYTES`, so that
+``harness eval RUN`` works on a clone (:func:`last_policies`). The budget: no committed file over
 :data:`MAX_FILE_BYTES`, all of them together under :data:`BUDGET_BYTES` (a test checks the repository).
 """
 
@@ -30,6 +31,8 @@ COMMITTED_SUFFIXES = (".json", ".md", ".csv", ".png")
 MAX_FILE_BYTES = 1_000_000
 #: all committed artifact files of ``results/runs`` together (checkpoints of stopped runs included)
 BUDGET_BYTES = 30_000_000
+#: the largest last policy a committed store keeps (PILCO's: 1-15 kB; SB3's networks stay on the machine that ran them)
+MAX_POLICY_BYTES = 100_000
 #: where a run's description begins to say which of its files a committed store holds
 FILES_HEADING = "\n\n---\n**Files**"
 
@@ -63,7 +66,7 @@ def files_note(artifacts: Sequence[Artifact]) -> str:
     if left:
         groups = ", ".join(f"`{name}` ({len(files)}, {_megabytes(sum(a.size for a in files))})" for name, files in sorted(left.items()))
         text += (f" Not committed, on the machine that ran it: {groups}; the newest checkpoint of a run stopped before "
-                 "its limit is committed by hand.")
+                 "its limit and a run's last policy are committed by hand.")
     return text
 
 
@@ -113,4 +116,46 @@ def stopped_runs(runs: Sequence[RunReader]) -> list[StoppedRun]:
         path = next(reversed(trial_files(files, PREFIX).values()), None)  # the newest trial's
         local = run.local_root / path if path is not None and run.local_root is not None else None
         out.append(StoppedRun(run.run_id, run.name, run.status, path, local, files[path].size if path is not None else 0))
+    return out
+
+
+@dataclass(frozen=True)
+class LastPolicy:
+    """A harness run's last saved policy (the one ``harness eval RUN`` tests) on this machine.
+
+    Attributes:
+        run_id, name, status: the run's.
+        policy: its artifact path (``policies/policy_trialNNN.policy``).
+        file: its local file (``None`` on a served store).
+        size: its size in bytes.
+    """
+
+    run_id: str
+    name: str
+    status: str
+    policy: str
+    file: Path | None
+    size: int
+
+    @property
+    def fits(self) -> bool:
+        """Whether a committed store keeps it (at most :data:`MAX_POLICY_BYTES`)."""
+        return self.size <= MAX_POLICY_BYTES
+
+
+def last_policies(runs: Sequence[RunReader]) -> list[LastPolicy]:
+    """The harness runs of ``runs`` (bench runs and sweep cells) that saved a policy, each with its last one:
+    the file a clone of the repository needs to test the run's learned controller (the earlier ones are
+    the trials' on the way)."""
+    out = []
+    for run in runs:
+        if run.cell is None:
+            continue
+        saved = run.policies()
+        if not saved:
+            continue
+        path = saved[-1]
+        size = next(a.size for a in run.artifacts(layout.POLICIES) if a.path == path)
+        local = run.local_root / path if run.local_root is not None else None
+        out.append(LastPolicy(run.run_id, run.name, run.status, path, local, size))
     return out

@@ -206,7 +206,9 @@ class RunReader:
         what there is otherwise."""
         files = self.policies()
         if not files:
-            raise CheckpointError(f"run {self.run_id} has no saved policy (no artifacts under '{layout.POLICIES}/')")
+            raise CheckpointError(f"run {self.run_id} has no saved policy here (no artifacts under '{layout.POLICIES}/'): policies "
+                                  "stay on the machine that ran the run unless committed with the store (harness store policies "
+                                  "--paths, results/README.md)")
         if trial is None:
             return files[-1]
         wanted = [f for f in files if Path(f).stem == layout.policy_stem(trial)]

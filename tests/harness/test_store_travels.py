@@ -174,3 +174,49 @@ def test_store_checkpoints_lists_the_newest_checkpoint_of_each_run_stopped_befor
     assert only.exit_code == 0, only.output
     files = only.output.split()
     assert len(files) == 1 and files[0].endswith(Path(saved[-1]).name) and (tmp_path / files[0]).is_file()
+
+
+def test_store_policies_lists_each_runs_last_policy_which_is_all_a_clone_needs_to_test_the_run(tmp_path, monkeypatch):
+    """`harness store policies`: every run that saved a policy, finished or stopped, with its last one (what
+    `harness eval RUN` tests; --paths: the local files, for `git add -f`). A copy of the store without the
+    policies refuses `harness eval` with a message that names the way out; with that one file copied over,
+    the copy tests the run."""
+    uri = uri_of(tmp_path)
+    run(RunConfig("random", "cartpole", 0, max_trials=3, eval_episodes=1), tracker=MlflowTracker(uri))
+    with pytest.raises(KeyboardInterrupt):
+        run(RunConfig("random", "cartpole", 1, max_trials=4, eval_episodes=1), tracker=InterruptedMlflow(uri, 3))
+    runs = {r.status: r for r in Store(uri).search(None)}
+    assert set(runs) == {"FINISHED", "KILLED"}
+    saved = {status: r.policies() for status, r in runs.items()}
+    assert len(saved["FINISHED"]) == 3 and len(saved["KILLED"]) >= 2  # not vacuous: the last is one of several
+
+    listed = CliRunner().invoke(main, ["store", "policies", "--tracking-uri", uri])
+    assert listed.exit_code == 0, listed.output
+    for status, r in runs.items():
+        lines = [line for line in listed.output.splitlines() if line.startswith(r.run_id[:8])]
+        assert len(lines) == 1 and status in lines[0] and saved[status][-1] in lines[0]
+    assert "2 runs have a saved policy here, 2 small enough to commit" in listed.output
+
+    monkeypatch.chdir(tmp_path)
+    only = CliRunner().invoke(main, ["store", "policies", "--paths", "--tracking-uri", uri])
+    assert only.exit_code == 0, only.output
+    files = only.output.split()
+    assert sorted(Path(f).name for f in files) == sorted(Path(p[-1]).name for p in saved.values())
+    assert all((tmp_path / f).is_file() for f in files)
+
+    clone = tmp_path / "clone"
+    clone.mkdir()
+    shutil.copy(tmp_path / "mlflow.db", clone / "mlflow.db")
+    relocated = CliRunner().invoke(main, ["store", "relocate", "--tracking-uri", uri_of(clone)])  # eval logs to the run
+    assert relocated.exit_code == 0, relocated.output
+    for f in files:  # a clone of the repository: the committed kinds of file only, here the policies just listed
+        (clone / f).parent.mkdir(parents=True, exist_ok=True)
+    finished = runs["FINISHED"].run_id
+    refused = CliRunner().invoke(main, ["eval", finished, "--episodes", "2", "--tracking-uri", uri_of(clone)])
+    assert refused.exit_code != 0
+    assert "has no saved policy here" in refused.output and "harness store policies --paths" in refused.output
+    for f in files:
+        shutil.copy(tmp_path / f, clone / f)
+    tested = CliRunner().invoke(main, ["eval", finished, "--episodes", "2", "--tracking-uri", uri_of(clone)])
+    assert tested.exit_code == 0, tested.output
+    assert Path(saved["FINISHED"][-1]).name in tested.output
