@@ -8,8 +8,9 @@ Usage::
 For each stored ``pilco``, ``pilco-mean`` or ``mc-pilco`` run, trial by trial: the J its policy search
 ended with (``J_after``, the model's prediction of the planning cost over the planning horizon), and
 the cost the same policy's next trial really incurred, computed from the recorded states with the
-planning cost (its width, its horizon) and with the task's own cost (the task's width, the whole
-episode). The run's evaluation cost is shown beside them.
+planning cost (its width, its horizon) and with the task's own cost (the task's width, the task's
+horizon); an episode that ended early (a fall) holds its last cost for the steps it did not take, as
+evaluations score it. The run's evaluation cost is shown beside them.
 
 Reading: where the realised planning cost agrees with the prediction while the task's cost stays high,
 the model is right and the search did what it was asked; the objective (width, horizon) does not ask
@@ -63,13 +64,14 @@ def paper_cost(run: SavedPilcoRun):
     return PAPER_COSTS[run.task.spec.name] if run.params.get("learner.cost") == "paper" else None
 
 
-def realised_cost(cost: SaturatingCost | StateCost, episode: Episode, horizon: int | None) -> float:
-    """The summed cost of an episode's states after the first (``states[1:horizon + 1]``; all when
-    ``horizon`` is None), as PILCO's J sums the predicted states 1..H."""
-    states = np.asarray(episode.states)[1:]
-    if horizon is not None:
-        states = states[:horizon]
-    return float(np.sum(cost(states)))
+def realised_cost(cost: SaturatingCost | StateCost, episode: Episode, horizon: int) -> float:
+    """The summed cost of an episode's states after the first (``states[1:horizon + 1]``), as PILCO's J
+    sums the predicted states 1..H. An episode that terminated before ``horizon`` steps (a fallen unicycle)
+    holds its last cost for the steps it did not take, as the harness's evaluation scores it
+    (:meth:`harness.task.Episode.horizon_cost`): otherwise a policy that falls at once would look cheap."""
+    costs = np.asarray(cost(np.asarray(episode.states)[1:horizon + 1]), dtype=float).reshape(-1)
+    missing = horizon - costs.size if episode.terminated and costs.size else 0
+    return float(np.sum(costs) + max(missing, 0) * costs[-1]) if costs.size else 0.0
 
 
 def check_run(run: SavedPilcoRun) -> dict:
@@ -93,7 +95,7 @@ def check_run(run: SavedPilcoRun) -> dict:
         rows.append({
             "trial": trial, "horizon": horizon, "width": trial_width if paper is None else None, "predicted": predicted[trial],
             "realised": realised_cost(planned, episodes[index], horizon),
-            "task": realised_cost(task_cost, episodes[index], None), "eval": evaluation.get(trial),
+            "task": realised_cost(task_cost, episodes[index], spec.horizon), "eval": evaluation.get(trial),
         })
     return {"width": width if paper is None else None, "task_width": float(task_cost.width), "rows": rows, "random": int(before.get(1, 0))}
 
@@ -112,8 +114,9 @@ def main(argv: list[str] | None = None) -> None:
     lines = ["# Predicted J against the cost really incurred, trial by trial", "",
              f"Command: `{command_line(__file__, argv, env='OMP_NUM_THREADS=1')}`  ",
              "Predicted: `J_after` (the model's J of the policy handed over, planning width and horizon). Realised: the "
-             "same cost on the states the policy produced in its next trial. Task: the task's own cost over the whole "
-             "episode. Evaluation: the run's `eval_cost` (mean over its evaluation episodes).", ""]
+             "same cost on the states the policy produced in its next trial. Task: the task's own cost over the task's "
+             "horizon. An episode that ended early (a fall) holds its last cost for the steps it did not take, as "
+             "evaluations score it. Evaluation: the run's `eval_cost` (mean over its evaluation episodes).", ""]
     for run_id in args.runs:
         with SavedPilcoRun(run_id, args.tracking_uri) as run:
             found = check_run(run)
