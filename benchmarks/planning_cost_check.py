@@ -39,7 +39,7 @@ sys.path.insert(0, str(ROOT))
 
 from benchmarks.report_file import command_line, write_report  # noqa: E402
 from harness.errors import CheckpointError, exit_on_error  # noqa: E402
-from harness.task import Episode, SaturatingCost  # noqa: E402
+from harness.task import Episode, SaturatingCost, held_cost  # noqa: E402
 from plugins.mc_pilco.costs import PAPER_COSTS, StateCost  # noqa: E402
 from plugins.pilco.saved_run import SavedPilcoRun  # noqa: E402
 
@@ -69,9 +69,7 @@ def realised_cost(cost: SaturatingCost | StateCost, episode: Episode, horizon: i
     sums the predicted states 1..H. An episode that terminated before ``horizon`` steps (a fallen unicycle)
     holds its last cost for the steps it did not take, as the harness's evaluation scores it
     (:meth:`harness.task.Episode.horizon_cost`): otherwise a policy that falls at once would look cheap."""
-    costs = np.asarray(cost(np.asarray(episode.states)[1:horizon + 1]), dtype=float).reshape(-1)
-    missing = horizon - costs.size if episode.terminated and costs.size else 0
-    return float(np.sum(costs) + max(missing, 0) * costs[-1]) if costs.size else 0.0
+    return held_cost(cost(np.asarray(episode.states)[1:horizon + 1]), horizon, episode.terminated)
 
 
 def check_run(run: SavedPilcoRun) -> dict:

@@ -219,8 +219,15 @@ class Episode:
         (the region it left is absorbing: a fallen unicycle stays fallen). Without this, a policy
         that fails *sooner* would score a *lower* cost. Untruncated episodes: :attr:`total_cost`.
         """
-        missing = max(horizon - self.steps, 0) if self.terminated and self.steps > 0 else 0
-        return self.total_cost + missing * float(self.costs[-1]) if missing else self.total_cost
+        return held_cost(self.costs, horizon, self.terminated)
+
+
+def held_cost(costs: np.ndarray, horizon: int, terminated: bool) -> float:
+    """Sum of per-step ``costs``; if the episode ``terminated`` after fewer than ``horizon`` steps, its last
+    cost held for the steps it did not take (:meth:`Episode.horizon_cost`, which applies it to the task's cost)."""
+    costs = np.asarray(costs, dtype=float).reshape(-1)
+    missing = max(horizon - costs.size, 0) if terminated and costs.size else 0
+    return float(np.sum(costs)) + missing * float(costs[-1]) if missing else float(np.sum(costs))
 
 
 class Task(ABC):

@@ -143,8 +143,8 @@ def test_plan_with_noise_uses_the_tasks_measurement_noise_and_refuses_trig_polic
 
 def test_the_unicycles_preset_plans_with_noise_over_a_growing_horizon_and_each_part_can_be_switched_off():
     """The unicycle's defaults are the settings its tuning seeds were run with (planning noise, 20 steps doubled
-    below 0.05 per step): a default run logs what such a run with those options given logs, so both share a
-    configuration. Each is an option that can be given (``plan_with_noise=false``, ``grow_horizon_below=0``);
+    below 0.05 per step): a default run uses (and logs as used.learner.*) what a run with those options given
+    uses. Each is an option that can be given (``plan_with_noise=false``, ``grow_horizon_below=0``);
     other tasks keep the reference's settings, and mc-pilco ignores the PILCO learner's schedule."""
     from plugins.mc_pilco.learner import McPilco
     from tasks.unicycle import Unicycle
