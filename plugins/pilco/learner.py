@@ -93,10 +93,20 @@ def _realised_sum(interaction: Interaction, predicted: tuple[np.ndarray, np.ndar
 
 
 def next_planning_horizon(horizon: int, task_horizon: int, search, grow_below: float | None) -> int:
-    """The planning horizon (steps) for the next trial: doubled, up to ``task_horizon``, when
-    ``grow_below`` is set and the search just done predicts a mean cost per step ``J/horizon``
-    below it (the policy already does well over the shorter horizon); otherwise unchanged."""
+    """The planning horizon (steps) for the next trial under the ``prediction`` rule: doubled, up to
+    ``task_horizon``, when ``grow_below`` is set and the search just done predicts a mean cost per step
+    ``J/horizon`` below it (the policy already does well over the shorter horizon); otherwise unchanged."""
     if grow_below is None or search is None or horizon >= task_horizon or search.J_after / horizon >= grow_below:
+        return horizon
+    return min(2 * horizon, task_horizon)
+
+
+def survived_horizon(horizon: int, task_horizon: int, episode: Episode) -> int:
+    """The planning horizon (steps) under the ``survival`` rule: doubled, up to ``task_horizon``, when
+    the real ``episode`` of the policy just applied stayed in the task's region for all ``horizon``
+    planned steps (it was not aborted before them: reality, not the model, says the policy already
+    holds over the shorter horizon); otherwise unchanged."""
+    if horizon >= task_horizon or (episode.terminated and episode.steps < horizon):
         return horizon
     return min(2 * horizon, task_horizon)
 
@@ -130,6 +140,10 @@ class Pilco(Learner):
         Option("grow_horizon_below", float, None, "double the planning horizon (up to the task's) after a policy search "
                "whose predicted mean cost per step, J/horizon, is below this (a horizon schedule; default: the task "
                "preset's, unicycle 0.05, else off; 0 = off)", low=0.0),
+        Option("grow_horizon_on", str, "prediction", "when the horizon schedule (grow_horizon_below > 0) doubles the "
+               "planning horizon: prediction (after a search whose J/horizon is below grow_horizon_below) or survival "
+               "(after a trial whose real episode was not aborted within the planning horizon; the threshold then "
+               "only switches the schedule on)", choices=("prediction", "survival")),
         Option("plan_with_noise", bool, False, "planning feeds the policy the task's measurement noise (its input "
                "N(m, S + N) as it acts on noisy observations; needs a policy on raw states, e.g. the unicycle's; "
                "default: the task preset's, on for the unicycle; else off, the policy sees the latent state as in the "
@@ -286,6 +300,8 @@ class Pilco(Learner):
             while True:
                 if trial > 0:  # apply the policy handed over last for one trial, record the data
                     episode = interaction.rollout(PilcoPolicy.snapshot(controller, self.layout))
+                    if self.grow_horizon_below is not None and o["grow_horizon_on"] == "survival":
+                        self.horizon = survived_horizon(self.horizon, spec.horizon, episode)
                     if o["plots"] and predicted is not None:
                         self.artifacts.append(self._plot_prediction(predicted, sampled, episode, workdir / f"prediction_trial{trial:03d}.png", trial))
                 trial += 1
@@ -332,7 +348,8 @@ class Pilco(Learner):
                 self.artifacts += self._save_model(workdir, trial, model, fit)
                 if trial == 1:
                     self.artifacts.append(self._save_settings(workdir))
-                self.horizon = next_planning_horizon(self.horizon, spec.horizon, search, self.grow_horizon_below)
+                if o["grow_horizon_on"] == "prediction":
+                    self.horizon = next_planning_horizon(self.horizon, spec.horizon, search, self.grow_horizon_below)
                 self._state = {
                     "controller": cpu_state_dict(controller),
                     "hyperparameters": hyperparameters.to("cpu").as_dict(),

@@ -22,7 +22,10 @@ NOT_WALL = lambda history: [{k: v for k, v in r.items() if "seconds" not in k or
     "learner,options,task_options",
     [("random", {}, {}), ("pilco", PILCO_TINY, {"horizon": 10}),
      # the planning horizon grows 3 -> 6 -> 10 over the trials: a resume must continue at the grown one
-     ("pilco", {**PILCO_TINY, "planning_horizon": "3", "grow_horizon_below": "10"}, {"horizon": 10})],
+     ("pilco", {**PILCO_TINY, "planning_horizon": "3", "grow_horizon_below": "10"}, {"horizon": 10}),
+     # the same under the survival rule: the horizon grows after the rollout, before the trial's search
+     ("pilco", {**PILCO_TINY, "planning_horizon": "3", "grow_horizon_below": "10", "grow_horizon_on": "survival"},
+      {"horizon": 10})],
 )
 def test_resumed_run_equals_uninterrupted_run(learner, options, task_options):
     config = RunConfig(learner, "cartpole", seed=4, learner_options=options, task_options=task_options, max_trials=4, eval_episodes=2)

@@ -178,6 +178,34 @@ def test_horizon_schedule_doubles_up_to_the_task_horizon_when_the_policy_does_we
     assert next_planning_horizon(20, 67, good, None) == 20 and next_planning_horizon(20, 67, None, 0.1) == 20
 
 
+def test_survival_rule_doubles_the_horizon_only_after_an_episode_that_stayed_up_for_all_planned_steps():
+    from harness.task import Episode
+    from plugins.pilco.learner import survived_horizon
+
+    def episode(steps: int, terminated: bool) -> Episode:
+        return Episode(np.zeros((steps + 1, 2)), np.zeros((steps + 1, 2)), np.zeros((steps, 1)), np.zeros(steps), terminated)
+
+    assert survived_horizon(20, 67, episode(12, True)) == 20  # fell within the planned steps
+    assert survived_horizon(20, 67, episode(19, True)) == 20
+    assert survived_horizon(20, 67, episode(20, True)) == 40  # fell after them
+    assert survived_horizon(20, 67, episode(67, False)) == 40
+    assert survived_horizon(40, 67, episode(45, True)) == 67 and survived_horizon(67, 67, episode(67, False)) == 67
+
+
+def test_survival_rule_grows_the_horizon_in_a_run_and_is_logged():
+    """Cart-pole at 10 steps is never aborted: under the survival rule every trial doubles the planning
+    horizon, 3 -> 6 -> 10, from the trial after the first learned policy was applied."""
+    options = {"num_centres": "4", "policy_max_evaluations": "4", "gp_max_evals": "20", "plots": "false",
+               "sample_particles": "0", "planning_horizon": "3", "grow_horizon_below": "1", "grow_horizon_on": "survival"}
+    tracker = MemoryTracker()
+    run(RunConfig("pilco", "cartpole", seed=0, learner_options=options, task_options={"horizon": 10}, max_trials=3,
+                  eval_episodes=1), tracker=tracker)
+    assert [h for _, h in sorted(tracker.metrics["planning_horizon"])] == [3.0, 6.0, 10.0]
+    assert tracker.params["learner.grow_horizon_on"] == "survival"
+    with pytest.raises(OptionError, match="grow_horizon_on"):
+        Pilco(CartPole().spec, {"grow_horizon_on": "always"}, seed=0)
+
+
 def test_entry_points_and_ablation_flag():
     assert load_learner("pilco") is Pilco and load_learner("pilco-mean") is PilcoMean
     assert not Pilco.mean_only and PilcoMean.mean_only
