@@ -73,14 +73,15 @@ class Logs:
     """What a learner logs besides the runner's records.
 
     Attributes:
-        shown: per-trial metrics shown in progress lines, as ``(metric, label)``, in order.
+        shown: per-trial metrics shown in progress lines, as ``(metric, label)`` (shown ``label 25.10``)
+            or ``(metric, label, format spec)`` (``("planning_horizon", "H", ".0f")``: ``H 40``), in order.
         timings: per-trial seconds of the learner's own work (:class:`Timing`); the report splits the
             wall time into them, the evaluation's and the rest.
         policy_size: the metric holding the policy's number of parameters (Table 1), if logged.
         trial_figure: a figure attached at every hand-over (:class:`TrialFigure`), if any.
     """
 
-    shown: tuple[tuple[str, str], ...] = ()
+    shown: tuple[tuple[str, ...], ...] = ()
     timings: tuple[Timing, ...] = ()
     policy_size: str | None = None
     trial_figure: TrialFigure | None = None

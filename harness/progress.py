@@ -48,9 +48,9 @@ def format_record(record: dict[str, Any], previous_wall: float | None = None, lo
     parts.append(f"{record['interaction_seconds']:.1f}" + (f"/{budget:.0f}" if budget else "") + " s interaction")
     parts.append(f"success {100 * record['eval_success_rate']:.0f}%")
     parts.append(f"eval cost {record['eval_cost']:.2f}")
-    for key, label in logs.shown:
+    for key, label, *spec in logs.shown:
         if key in record:
-            parts.append(f"{label} {record[key]:.2f}")
+            parts.append(f"{label} {record[key]:{spec[0] if spec else '.2f'}}")
     split = [f"{t.short} {record[t.metric]:.0f} s" for t in (*logs.timings, EVALUATION) if t.metric in record]
     if previous_wall is not None:
         split.insert(0, f"trial {record['wall_seconds'] - previous_wall:.0f} s" + (":" if split else ""))

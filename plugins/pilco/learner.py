@@ -122,7 +122,7 @@ class Pilco(Learner):
     mean_only: ClassVar[bool] = False
     supports_resume = True
     logs = Logs(
-        shown=(("J_after", "J"), ("J_sampled", "J sampled"), ("predicted_cost", "predicted")),
+        shown=(("J_after", "J"), ("J_sampled", "J sampled"), ("predicted_cost", "predicted"), ("planning_horizon", "H", ".0f")),
         timings=(Timing("model_train_seconds", "model_training", "GP training", "GP"),
                  Timing("policy_opt_seconds", "policy_search", "policy search", "policy")),
         policy_size="policy_parameters",

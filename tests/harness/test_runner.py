@@ -216,6 +216,8 @@ def test_progress_line_says_where_the_trials_wall_time_went():
     assert format_record(record, previous_wall=5.0, logs=logs).endswith("| wall 42 s (trial 37 s: GP 3 s, policy 30 s, eval 2 s)")
     del record["model_train_seconds"], record["policy_opt_seconds"], record["eval_seconds"]
     assert format_record(record, previous_wall=5.0, logs=logs).endswith("| wall 42 s (trial 37 s)")
+    # a metric declared with a format spec: PILCO's planning horizon in steps
+    assert "| J 25.10 | H 40 | wall 42 s" in format_record({**record, "planning_horizon": 40.0}, logs=logs)
     # a run limited by interaction time shows how much of its budget it has used
     budgeted = {**record, "max_trials": None, "budget_seconds": 2000.0}
     assert format_record(budgeted).startswith("trial 3 | 12.0/2000 s interaction | success 30%")
