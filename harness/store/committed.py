@@ -147,17 +147,14 @@ def last_policies(runs: Sequence[RunReader]) -> list[LastPolicy]:
     """The harness runs of ``runs`` (bench runs and sweep cells) that saved a policy, each with its last one:
     the file a clone of the repository needs to test the run's learned controller (the earlier ones are
     the trials' on the way)."""
-    from harness.datafile import trial_files
-    from harness.learner import POLICY_PREFIX
-
     out = []
     for run in runs:
         if run.cell is None:
             continue
-        files = {a.path: a for a in run.artifacts(layout.POLICIES) if not a.is_dir}
-        path = next(reversed(trial_files(files, POLICY_PREFIX).values()), None)  # the last trial's, as RunReader.policy
-        if path is None:
+        saved = run.policy_artifacts()
+        if not saved:
             continue
-        local = run.local_root / path if run.local_root is not None else None
-        out.append(LastPolicy(run.run_id, run.name, run.status, path, local, files[path].size))
+        last = saved[-1]
+        local = run.local_root / last.path if run.local_root is not None else None
+        out.append(LastPolicy(run.run_id, run.name, run.status, last.path, local, last.size))
     return out

@@ -192,14 +192,19 @@ class RunReader:
 
     # ---- what the runner stores ---------------------------------------------------------------
 
-    def policies(self) -> list[str]:
-        """Artifact paths of the saved policies, one per trial, by trial; where a trial has a file in the
+    def policy_artifacts(self) -> list[Artifact]:
+        """The saved policies (path, size), one per trial, by trial; where a trial has a file in the
         data format and one in an older pickled format (a migrated run), the data format's
         (:func:`harness.datafile.trial_files`)."""
         from harness.datafile import trial_files
         from harness.learner import POLICY_PREFIX
 
-        return list(trial_files((a.path for a in self.artifacts(layout.POLICIES) if not a.is_dir), POLICY_PREFIX).values())
+        files = {a.path: a for a in self.artifacts(layout.POLICIES) if not a.is_dir}
+        return [files[path] for path in trial_files(files, POLICY_PREFIX).values()]
+
+    def policies(self) -> list[str]:
+        """Artifact paths of the saved policies, one per trial, by trial (:meth:`policy_artifacts`)."""
+        return [a.path for a in self.policy_artifacts()]
 
     def policy(self, trial: int | None = None) -> str:
         """Artifact path of the last saved policy, or of ``trial``'s; a :class:`CheckpointError` saying

@@ -96,9 +96,9 @@ def next_planning_horizon(horizon: int, task_horizon: int, search, grow_below: f
     """The planning horizon (steps) for the next trial under the ``prediction`` rule: doubled, up to
     ``task_horizon``, when ``grow_below`` is set and the search just done predicts a mean cost per step
     ``J/horizon`` below it (the policy already does well over the shorter horizon); otherwise unchanged."""
-    if grow_below is None or search is None or horizon >= task_horizon or search.J_after / horizon >= grow_below:
+    if grow_below is None or search is None or search.J_after / horizon >= grow_below:
         return horizon
-    return min(2 * horizon, task_horizon)
+    return doubled_horizon(horizon, task_horizon)
 
 
 def survived_horizon(horizon: int, task_horizon: int, episode: Episode) -> int:
@@ -106,9 +106,14 @@ def survived_horizon(horizon: int, task_horizon: int, episode: Episode) -> int:
     the real ``episode`` of the policy just applied stayed in the task's region for all ``horizon``
     planned steps (it was not aborted before them: reality, not the model, says the policy already
     holds over the shorter horizon); otherwise unchanged."""
-    if horizon >= task_horizon or (episode.terminated and episode.steps < horizon):
+    if episode.terminated and episode.steps < horizon:
         return horizon
-    return min(2 * horizon, task_horizon)
+    return doubled_horizon(horizon, task_horizon)
+
+
+def doubled_horizon(horizon: int, task_horizon: int) -> int:
+    """A horizon schedule's step: ``horizon`` doubled, up to ``task_horizon``; unchanged once there (or beyond)."""
+    return horizon if horizon >= task_horizon else min(2 * horizon, task_horizon)
 
 
 
