@@ -40,7 +40,7 @@ from harness.interaction import Interaction
 from harness.learner import Learner, Policy
 from harness.learner_logs import Logs, Timing, TrialFigure, save_figure
 from harness.options import Option
-from harness.task import Episode, TaskSpec
+from harness.task import Episode, TaskSpec, held_cost
 from harness.threads import run_threads, torch_threads
 from plugins.pilco.presets import GENERIC, PRESETS, preset_with
 
@@ -111,6 +111,23 @@ def survived_horizon(horizon: int, task_horizon: int, episode: Episode) -> int:
     return doubled_horizon(horizon, task_horizon)
 
 
+def realised_cost_per_step(horizon: int, episode: Episode) -> float:
+    """The real ``episode``'s mean cost per step over its first ``horizon`` steps, a fall within them
+    holding its last cost for the steps not taken (:func:`harness.task.held_cost`, as evaluations count)."""
+    return held_cost(episode.costs[:horizon], horizon, episode.terminated) / horizon
+
+
+def realised_horizon(horizon: int, task_horizon: int, episode: Episode, grow_below: float) -> int:
+    """The planning horizon (steps) under the ``realised`` rule: doubled, up to ``task_horizon``, when the
+    real ``episode`` of the policy just applied had a mean cost per step below ``grow_below`` over the
+    ``horizon`` planned steps (:func:`realised_cost_per_step`). Reality, not the model, judges the
+    policy over the shorter horizon, and unlike the ``survival`` rule an episode that stayed up far from
+    the goal (or fell) does not count as doing well."""
+    if realised_cost_per_step(horizon, episode) >= grow_below:
+        return horizon
+    return doubled_horizon(horizon, task_horizon)
+
+
 def doubled_horizon(horizon: int, task_horizon: int) -> int:
     """A horizon schedule's step: ``horizon`` doubled, up to ``task_horizon``; unchanged once there (or beyond)."""
     return horizon if horizon >= task_horizon else min(2 * horizon, task_horizon)
@@ -148,7 +165,9 @@ class Pilco(Learner):
         Option("grow_horizon_on", str, "prediction", "when the horizon schedule (grow_horizon_below > 0) doubles the "
                "planning horizon: prediction (after a search whose J/horizon is below grow_horizon_below) or survival "
                "(after a trial whose real episode was not aborted within the planning horizon; the threshold then "
-               "only switches the schedule on)", choices=("prediction", "survival")),
+               "only switches the schedule on) or realised (after a trial whose real episode's mean cost per step over "
+               "the planning horizon, a fall holding its last cost, is below grow_horizon_below)",
+               choices=("prediction", "survival", "realised")),
         Option("plan_with_noise", bool, False, "planning feeds the policy the task's measurement noise (its input "
                "N(m, S + N) as it acts on noisy observations; needs a policy on raw states, e.g. the unicycle's; "
                "default: the task preset's, on for the unicycle; else off, the policy sees the latent state as in the "
@@ -303,10 +322,14 @@ class Pilco(Learner):
                 sampled = resumed.get("sampled")
                 last_J = resumed.get("J_after")
             while True:
+                realised = None
                 if trial > 0:  # apply the policy handed over last for one trial, record the data
                     episode = interaction.rollout(PilcoPolicy.snapshot(controller, self.layout))
+                    realised = realised_cost_per_step(self.horizon, episode)  # logged with this trial's metrics
                     if self.grow_horizon_below is not None and o["grow_horizon_on"] == "survival":
                         self.horizon = survived_horizon(self.horizon, spec.horizon, episode)
+                    elif self.grow_horizon_below is not None and o["grow_horizon_on"] == "realised":
+                        self.horizon = realised_horizon(self.horizon, spec.horizon, episode, self.grow_horizon_below)
                     if o["plots"] and predicted is not None:
                         self.artifacts.append(self._plot_prediction(predicted, sampled, episode, workdir / f"prediction_trial{trial:03d}.png", trial))
                 trial += 1
@@ -346,6 +369,8 @@ class Pilco(Learner):
                         graph_warned = True
                         warnings.warn(f"pilco: J + dJ could not be captured as a CUDA graph ({objective.graph_error}); every "
                                       "evaluation launches its operations one by one (slower; metric cuda_graph = 0)", stacklevel=1)
+                if realised is not None:  # the previous policy's recorded episode, mean cost per step over its planned horizon
+                    self.metrics["rollout_cost_per_step"] = realised
                 self.metrics["planning_horizon"] = float(self.horizon)
                 self.metrics["planning_basis"] = float(posterior.inputs.shape[0])
                 if sampled is not None:

@@ -25,6 +25,9 @@ NOT_WALL = lambda history: [{k: v for k, v in r.items() if "seconds" not in k or
      ("pilco", {**PILCO_TINY, "planning_horizon": "3", "grow_horizon_below": "10"}, {"horizon": 10}),
      # the same under the survival rule: the horizon grows after the rollout, before the trial's search
      ("pilco", {**PILCO_TINY, "planning_horizon": "3", "grow_horizon_below": "10", "grow_horizon_on": "survival"},
+      {"horizon": 10}),
+     # and under the realised rule (a threshold every cart-pole episode meets)
+     ("pilco", {**PILCO_TINY, "planning_horizon": "3", "grow_horizon_below": "10", "grow_horizon_on": "realised"},
       {"horizon": 10})],
 )
 def test_resumed_run_equals_uninterrupted_run(learner, options, task_options):

@@ -206,6 +206,41 @@ def test_survival_rule_grows_the_horizon_in_a_run_and_is_logged():
         Pilco(CartPole().spec, {"grow_horizon_on": "always"}, seed=0)
 
 
+def test_realised_rule_doubles_the_horizon_only_after_an_episode_cheap_over_the_planned_steps():
+    from harness.task import Episode
+    from plugins.pilco.learner import realised_cost_per_step, realised_horizon
+
+    def episode(costs: list[float], terminated: bool) -> Episode:
+        steps = len(costs)
+        return Episode(np.zeros((steps + 1, 2)), np.zeros((steps + 1, 2)), np.zeros((steps, 1)), np.array(costs), terminated)
+
+    cheap_then_fall = episode([0.1] * 20 + [1.0] * 5, True)  # fell after the 20 planned steps: only those count
+    assert realised_cost_per_step(20, cheap_then_fall) == pytest.approx(0.1)
+    assert realised_horizon(20, 67, cheap_then_fall, 0.2) == 40 and realised_horizon(20, 67, cheap_then_fall, 0.1) == 20
+    # fell at step 10 (last cost 0.9): 9 x 0.1 + 0.9, and 0.9 held for the 10 steps not taken -> 10.8 / 20
+    early_fall = episode([0.1] * 9 + [0.9], True)
+    assert realised_cost_per_step(20, early_fall) == pytest.approx(10.8 / 20)
+    assert realised_horizon(20, 67, early_fall, 0.5) == 20 and realised_horizon(20, 67, early_fall, 0.6) == 40
+    # stayed up all along but far from the goal: the survival rule would grow, this one does not
+    upright_far = episode([0.3] * 67, False)
+    assert realised_horizon(20, 67, upright_far, 0.2) == 20
+    assert realised_horizon(40, 67, episode([0.0] * 67, False), 0.2) == 67 and realised_horizon(67, 67, episode([0.0] * 67, False), 0.2) == 67
+
+
+@pytest.mark.parametrize("below,expected", [("10", [3.0, 6.0, 10.0]), ("1e-12", [3.0, 3.0, 3.0])])
+def test_realised_rule_in_a_run_follows_the_logged_rollout_cost(below, expected):
+    """Cart-pole's cost per step lies in (0, 1]: a threshold of 10 doubles the planning horizon after every
+    rollout of a learned policy (3 -> 6 -> 10), 1e-12 never; the cost it judged by is logged per trial."""
+    options = {"num_centres": "4", "policy_max_evaluations": "4", "gp_max_evals": "20", "plots": "false",
+               "sample_particles": "0", "planning_horizon": "3", "grow_horizon_below": below, "grow_horizon_on": "realised"}
+    tracker = MemoryTracker()
+    run(RunConfig("pilco", "cartpole", seed=0, learner_options=options, task_options={"horizon": 10}, max_trials=3,
+                  eval_episodes=1), tracker=tracker)
+    assert [h for _, h in sorted(tracker.metrics["planning_horizon"])] == expected
+    rollout = sorted(tracker.metrics["rollout_cost_per_step"])  # from trial 2: trial 1 follows the random rollouts only
+    assert [step for step, _ in rollout] == [2, 3] and all(0.0 < c <= 1.0 for _, c in rollout)
+
+
 def test_entry_points_and_ablation_flag():
     assert load_learner("pilco") is Pilco and load_learner("pilco-mean") is PilcoMean
     assert not Pilco.mean_only and PilcoMean.mean_only
