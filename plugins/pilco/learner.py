@@ -40,8 +40,9 @@ from harness.interaction import Interaction
 from harness.learner import Learner, Policy
 from harness.learner_logs import Logs, Timing, TrialFigure, save_figure
 from harness.options import Option
-from harness.task import Episode, TaskSpec, held_cost
+from harness.task import Episode, TaskSpec
 from harness.threads import run_threads, torch_threads
+from plugins.pilco.horizon import RULES, HorizonSchedule
 from plugins.pilco.presets import GENERIC, PRESETS, preset_with
 
 if TYPE_CHECKING:
@@ -92,48 +93,6 @@ def _realised_sum(interaction: Interaction, predicted: tuple[np.ndarray, np.ndar
     return float(np.sum(interaction.episodes[-1].costs[: len(predicted[0])]))
 
 
-def next_planning_horizon(horizon: int, task_horizon: int, search, grow_below: float | None) -> int:
-    """The planning horizon (steps) for the next trial under the ``prediction`` rule: doubled, up to
-    ``task_horizon``, when ``grow_below`` is set and the search just done predicts a mean cost per step
-    ``J/horizon`` below it (the policy already does well over the shorter horizon); otherwise unchanged."""
-    if grow_below is None or search is None or search.J_after / horizon >= grow_below:
-        return horizon
-    return doubled_horizon(horizon, task_horizon)
-
-
-def survived_horizon(horizon: int, task_horizon: int, episode: Episode) -> int:
-    """The planning horizon (steps) under the ``survival`` rule: doubled, up to ``task_horizon``, when
-    the real ``episode`` of the policy just applied stayed in the task's region for all ``horizon``
-    planned steps (it was not aborted before them: reality, not the model, says the policy already
-    holds over the shorter horizon); otherwise unchanged."""
-    if episode.terminated and episode.steps < horizon:
-        return horizon
-    return doubled_horizon(horizon, task_horizon)
-
-
-def realised_cost_per_step(horizon: int, episode: Episode) -> float:
-    """The real ``episode``'s mean cost per step over its first ``horizon`` steps, a fall within them
-    holding its last cost for the steps not taken (:func:`harness.task.held_cost`, as evaluations count)."""
-    return held_cost(episode.costs[:horizon], horizon, episode.terminated) / horizon
-
-
-def realised_horizon(horizon: int, task_horizon: int, episode: Episode, grow_below: float) -> int:
-    """The planning horizon (steps) under the ``realised`` rule: doubled, up to ``task_horizon``, when the
-    real ``episode`` of the policy just applied had a mean cost per step below ``grow_below`` over the
-    ``horizon`` planned steps (:func:`realised_cost_per_step`). Reality, not the model, judges the
-    policy over the shorter horizon, and unlike the ``survival`` rule an episode that stayed up far from
-    the goal (or fell) does not count as doing well."""
-    if realised_cost_per_step(horizon, episode) >= grow_below:
-        return horizon
-    return doubled_horizon(horizon, task_horizon)
-
-
-def doubled_horizon(horizon: int, task_horizon: int) -> int:
-    """A horizon schedule's step: ``horizon`` doubled, up to ``task_horizon``; unchanged once there (or beyond)."""
-    return horizon if horizon >= task_horizon else min(2 * horizon, task_horizon)
-
-
-
 # ---
 class Pilco(Learner):
     """PILCO (Deisenroth & Rasmussen 2011): GP dynamics, moment matching, analytic policy gradients."""
@@ -167,7 +126,7 @@ class Pilco(Learner):
                "(after a trial whose real episode was not aborted within the planning horizon; the threshold then "
                "only switches the schedule on) or realised (after a trial whose real episode's mean cost per step over "
                "the planning horizon, a fall holding its last cost, is below grow_horizon_below)",
-               choices=("prediction", "survival", "realised")),
+               choices=RULES),
         Option("plan_with_noise", bool, False, "planning feeds the policy the task's measurement noise (its input "
                "N(m, S + N) as it acts on noisy observations; needs a policy on raw states, e.g. the unicycle's; "
                "default: the task preset's, on for the unicycle; else off, the policy sees the latent state as in the "
@@ -217,9 +176,9 @@ class Pilco(Learner):
         self.preset = preset_with(spec.name, o)
         self.layout = layout_for(spec, self.preset)
         schedule = preset.horizon_schedule
-        self.horizon = o["planning_horizon"] or preset.planning_horizon or (schedule[0] if schedule else spec.horizon)
         grow = o["grow_horizon_below"] if o["grow_horizon_below"] is not None else (schedule[1] if schedule else None)
-        self.grow_horizon_below = grow or None  # 0: off
+        self.schedule = HorizonSchedule(o["planning_horizon"] or preset.planning_horizon or (schedule[0] if schedule else spec.horizon),
+                                        spec.horizon, grow or None, o["grow_horizon_on"])  # threshold 0: off
         self.cost_width = o["cost_width"] or preset.cost_width
         self.num_pseudo = o["num_pseudo"] or self.preset.sparse_threshold
         tol = o["fresh_start_tol"] if o["fresh_start_tol"] is not None else preset.fresh_start_tol
@@ -239,6 +198,11 @@ class Pilco(Learner):
             raise OptionError(f"kernel={o['kernel']}: {exc} (or --set kernel=torch)") from None
         self._state: dict[str, Any] = {}  # see state_dict(); filled at every hand-over
 
+    @property
+    def horizon(self) -> int:
+        """The current planning horizon, steps (:attr:`schedule` grows it where a rule is set)."""
+        return self.schedule.horizon
+
     def options_used(self) -> dict[str, Any]:
         """The options with the task preset's values (and the harness's thread count) where they were left unset."""
         used = dict(self.options)
@@ -248,7 +212,7 @@ class Pilco(Learner):
         used.update(planning_horizon=self.horizon, cost_width=self.cost_width or self.spec.cost.width, num_pseudo=self.num_pseudo,
                     gp_hyper_subset=self.options["gp_hyper_subset"] or self.preset.sparse_threshold,
                     threads=self.options["threads"] or run_threads(), kernel=self.kernel, fresh_start_tol=self.fresh_start_tol,
-                    grow_horizon_below=self.grow_horizon_below, plan_with_noise=self.policy_noise_std is not None)
+                    grow_horizon_below=self.schedule.grow_below, plan_with_noise=self.policy_noise_std is not None)
         return used
 
     @classmethod
@@ -318,18 +282,14 @@ class Pilco(Learner):
                 controller.load_state_dict(resumed["controller"])
                 hyperparameters = GPHyperparameters.from_dict(resumed["hyperparameters"])
                 trial, predicted = resumed["trial"], resumed["predicted"]
-                self.horizon = resumed.get("planning_horizon", self.horizon)
+                self.schedule.horizon = resumed.get("planning_horizon", self.horizon)
                 sampled = resumed.get("sampled")
                 last_J = resumed.get("J_after")
             while True:
                 realised = None
                 if trial > 0:  # apply the policy handed over last for one trial, record the data
                     episode = interaction.rollout(PilcoPolicy.snapshot(controller, self.layout))
-                    realised = realised_cost_per_step(self.horizon, episode)  # logged with this trial's metrics
-                    if self.grow_horizon_below is not None and o["grow_horizon_on"] == "survival":
-                        self.horizon = survived_horizon(self.horizon, spec.horizon, episode)
-                    elif self.grow_horizon_below is not None and o["grow_horizon_on"] == "realised":
-                        self.horizon = realised_horizon(self.horizon, spec.horizon, episode, self.grow_horizon_below)
+                    realised = self.schedule.after_rollout(episode)  # the survival and realised rules; logged below
                     if o["plots"] and predicted is not None:
                         self.artifacts.append(self._plot_prediction(predicted, sampled, episode, workdir / f"prediction_trial{trial:03d}.png", trial))
                 trial += 1
@@ -378,8 +338,7 @@ class Pilco(Learner):
                 self.artifacts += self._save_model(workdir, trial, model, fit)
                 if trial == 1:
                     self.artifacts.append(self._save_settings(workdir))
-                if o["grow_horizon_on"] == "prediction":
-                    self.horizon = next_planning_horizon(self.horizon, spec.horizon, search, self.grow_horizon_below)
+                self.schedule.after_search(search)  # the prediction rule
                 self._state = {
                     "controller": cpu_state_dict(controller),
                     "hyperparameters": hyperparameters.to("cpu").as_dict(),

@@ -151,17 +151,17 @@ def test_the_unicycles_preset_plans_with_noise_over_a_growing_horizon_and_each_p
 
     spec = Unicycle().spec
     default = Pilco(spec, {}, seed=0)
-    assert default.horizon == 20 and default.grow_horizon_below == 0.05
+    assert default.horizon == 20 and default.schedule.grow_below == 0.05
     np.testing.assert_array_equal(default.policy_noise_std, spec.measurement_noise_std)
     given = Pilco(spec, {"plan_with_noise": "true", "planning_horizon": "20", "grow_horizon_below": "0.05"}, seed=0)
     keys = ("plan_with_noise", "planning_horizon", "grow_horizon_below")
     assert {k: default.options_used()[k] for k in keys} == {k: given.options_used()[k] for k in keys} == {
         "plan_with_noise": True, "planning_horizon": 20, "grow_horizon_below": 0.05}
     off = Pilco(spec, {"plan_with_noise": "false", "grow_horizon_below": "0", "planning_horizon": "67"}, seed=0)
-    assert off.policy_noise_std is None and off.grow_horizon_below is None and off.horizon == 67
+    assert off.policy_noise_std is None and off.schedule.grow_below is None and off.horizon == 67
     assert {k: off.options_used()[k] for k in keys} == {"plan_with_noise": False, "planning_horizon": 67, "grow_horizon_below": None}
     cartpole = Pilco(CartPole().spec, {}, seed=0)
-    assert cartpole.policy_noise_std is None and cartpole.grow_horizon_below is None
+    assert cartpole.policy_noise_std is None and cartpole.schedule.grow_below is None
     assert cartpole.options_used()["plan_with_noise"] is False
     assert McPilco(spec, {}, seed=0).horizon == spec.horizon
 
@@ -169,7 +169,7 @@ def test_the_unicycles_preset_plans_with_noise_over_a_growing_horizon_and_each_p
 def test_horizon_schedule_doubles_up_to_the_task_horizon_when_the_policy_does_well():
     from types import SimpleNamespace
 
-    from plugins.pilco.learner import next_planning_horizon
+    from plugins.pilco.horizon import next_planning_horizon
 
     good, poor = SimpleNamespace(J_after=1.0), SimpleNamespace(J_after=10.0)  # 0.05 and 0.5 per step over 20
     assert next_planning_horizon(20, 67, good, 0.1) == 40
@@ -180,7 +180,7 @@ def test_horizon_schedule_doubles_up_to_the_task_horizon_when_the_policy_does_we
 
 def test_survival_rule_doubles_the_horizon_only_after_an_episode_that_stayed_up_for_all_planned_steps():
     from harness.task import Episode
-    from plugins.pilco.learner import survived_horizon
+    from plugins.pilco.horizon import survived_horizon
 
     def episode(steps: int, terminated: bool) -> Episode:
         return Episode(np.zeros((steps + 1, 2)), np.zeros((steps + 1, 2)), np.zeros((steps, 1)), np.zeros(steps), terminated)
@@ -208,7 +208,7 @@ def test_survival_rule_grows_the_horizon_in_a_run_and_is_logged():
 
 def test_realised_rule_doubles_the_horizon_only_after_an_episode_cheap_over_the_planned_steps():
     from harness.task import Episode
-    from plugins.pilco.learner import realised_cost_per_step, realised_horizon
+    from plugins.pilco.horizon import realised_cost_per_step, realised_horizon
 
     def episode(costs: list[float], terminated: bool) -> Episode:
         steps = len(costs)
@@ -225,6 +225,27 @@ def test_realised_rule_doubles_the_horizon_only_after_an_episode_cheap_over_the_
     upright_far = episode([0.3] * 67, False)
     assert realised_horizon(20, 67, upright_far, 0.2) == 20
     assert realised_horizon(40, 67, episode([0.0] * 67, False), 0.2) == 67 and realised_horizon(67, 67, episode([0.0] * 67, False), 0.2) == 67
+
+
+def test_horizon_schedule_applies_each_rule_at_its_point_only():
+    """A real-episode rule acts after the rollout and ignores the search; the prediction rule the other way round."""
+    from types import SimpleNamespace
+
+    from harness.task import Episode
+    from plugins.pilco.horizon import HorizonSchedule
+
+    cheap = Episode(np.zeros((21, 2)), np.zeros((21, 2)), np.zeros((20, 1)), np.full(20, 0.01), False)
+    good_search = SimpleNamespace(J_after=0.1)
+    for rule, after_rollout, after_search in [("prediction", 20, 40), ("survival", 40, 40), ("realised", 40, 40)]:
+        schedule = HorizonSchedule(20, 67, 0.05, rule)
+        assert schedule.after_rollout(cheap) == pytest.approx(0.01) and schedule.horizon == after_rollout, rule
+        schedule.after_search(good_search)
+        assert schedule.horizon == after_search, rule
+    fixed = HorizonSchedule(20, 67, None, "realised")  # no threshold: the horizon stays
+    fixed.after_rollout(cheap), fixed.after_search(good_search)
+    assert fixed.horizon == 20
+    with pytest.raises(ValueError, match="not one of prediction, survival, realised"):
+        HorizonSchedule(20, 67, 0.05, "always")
 
 
 @pytest.mark.parametrize("below,expected", [("10", [3.0, 6.0, 10.0]), ("1e-12", [3.0, 3.0, 3.0])])
