@@ -40,6 +40,7 @@ from harness.learner_logs import Logs, Timing
 from harness.options import Option
 from harness.task import TaskSpec
 from harness.threads import run_threads
+from plugins.pilco.horizon import GROW_HORIZON_ON, HorizonSchedule
 from plugins.pilco.presets import GENERIC, PRESETS, preset_with
 
 #: below this largest kernel value (of 1) between the RBF centres and the mean start state, a fresh run warns
@@ -83,6 +84,10 @@ class McPilco(Learner):
         Option("initial_rollouts", int, None, "random rollouts before learning (default: the PILCO task preset)", low=1),
         Option("random_scale", float, None, "random controls in scale * bounds (default: the PILCO task preset)", low=0.0, high=1.0),
         Option("planning_horizon", int, None, "simulated steps per particle (default: the PILCO preset's, else the task horizon)", low=1),
+        Option("grow_horizon_below", float, 0.0, "double the planning horizon (up to the task's) when the rule grow_horizon_on "
+               "judges the policy good over the shorter one against this threshold, cost per step (PILCO's horizon "
+               "schedule, plugins.pilco.horizon; 0 = off, the default)", low=0.0),
+        GROW_HORIZON_ON,
         Option("cost_width", float, None, "cost width used in planning (default: the PILCO preset's, else the task's)", low=1e-6),
         Option("cost", str, "task", "planning cost: task (the task's cost at the planning width) or paper (MC-PILCO's own "
                "for the task, plugins.mc_pilco.costs; cart-pole: 1-exp(-((|theta|-pi)/3)^2-(x/1)^2) with theta unwrapped, "
@@ -136,12 +141,18 @@ class McPilco(Learner):
             if o["cost_width"] is not None or o["cost_narrowing"] != 1.0:
                 raise OptionError(f"mc-pilco on {spec.name}: cost_width and cost_narrowing set the width of the task's "
                                   "cost; cost=paper has its own length-scales: drop them, or use cost=task")
-        self.horizon = o["planning_horizon"] or preset.planning_horizon or spec.horizon
+        self.schedule = HorizonSchedule(o["planning_horizon"] or preset.planning_horizon or spec.horizon, spec.horizon,
+                                        o["grow_horizon_below"] or None, o["grow_horizon_on"])
         self.cost_width = o["cost_width"] or preset.cost_width
         from plugins.pilco.learner import resolve_device
 
         self.device = resolve_device(o["device"])
         self._state: dict[str, Any] = {}
+
+    @property
+    def horizon(self) -> int:
+        """The current planning horizon, steps (:attr:`schedule` grows it where ``grow_horizon_below`` is set)."""
+        return self.schedule.horizon
 
     def planning_width(self, trial: int) -> float:
         """The planning cost's width at trial ``trial`` (1, 2, ...): option ``cost_width`` (else the preset's,
@@ -258,10 +269,13 @@ class McPilco(Learner):
         else:  # continue right after the hand-over of trial `trial`
             controller.load_state_dict(resumed["controller"])  # copied onto the controller's device
             hyperparameters, trial = GPHyperparameters.from_dict(resumed["hyperparameters"]), resumed["trial"]
+            self.schedule.horizon = resumed.get("planning_horizon", self.horizon)
         graph_warned = False
         while True:
+            realised = None
             if trial > 0:  # apply the policy handed over last for one trial, record the data
-                interaction.rollout(PilcoPolicy.snapshot(controller, self.layout))
+                episode = interaction.rollout(PilcoPolicy.snapshot(controller, self.layout))
+                realised = self.schedule.after_rollout(episode)  # the survival and realised rules
             trial += 1
             x, y = transitions(interaction.episodes, self.layout)
             self.report_status(f"GP training on {x.shape[0]} transitions")
@@ -287,8 +301,11 @@ class McPilco(Learner):
                                   "every step launches its operations one by one (slower; metric cuda_graph = 0)", stacklevel=1)
             if not math.isfinite(search.J_after):
                 self.metrics["policy_search_failed"] = 1.0
-            self._state = {"controller": cpu_state_dict(controller),
-                           "hyperparameters": hyperparameters.to("cpu").as_dict(), "trial": trial}
+            if realised is not None:  # the previous policy's recorded episode, mean cost per step over its planned horizon
+                self.metrics["rollout_cost_per_step"] = realised
+            self.schedule.after_search(search if math.isfinite(search.J_after) else None)  # the prediction rule
+            self._state = {"controller": cpu_state_dict(controller), "hyperparameters": hyperparameters.to("cpu").as_dict(),
+                           "trial": trial, "planning_horizon": self.horizon}
             yield PilcoPolicy.snapshot(controller, self.layout)
 
     def state_dict(self) -> dict[str, Any]:

@@ -21,10 +21,19 @@ from __future__ import annotations
 from dataclasses import dataclass
 from typing import Protocol
 
+from harness.options import Option
 from harness.task import Episode, held_cost
 
 #: the values of the learner option ``grow_horizon_on``
 RULES = ("prediction", "survival", "realised")
+
+#: the learner option that picks the rule (``pilco`` and ``mc-pilco``)
+GROW_HORIZON_ON = Option(
+    "grow_horizon_on", str, "prediction", "when the horizon schedule (grow_horizon_below > 0) doubles the planning horizon: "
+    "prediction (after a search whose J/horizon is below grow_horizon_below) or survival (after a trial whose real episode "
+    "was not aborted within the planning horizon; the threshold then only switches the schedule on) or realised (after a "
+    "trial whose real episode's mean cost per step over the planning horizon, a fall holding its last cost, is below "
+    "grow_horizon_below)", choices=RULES)
 
 
 class _Search(Protocol):

@@ -42,7 +42,7 @@ from harness.learner_logs import Logs, Timing, TrialFigure, save_figure
 from harness.options import Option
 from harness.task import Episode, TaskSpec
 from harness.threads import run_threads, torch_threads
-from plugins.pilco.horizon import RULES, HorizonSchedule
+from plugins.pilco.horizon import GROW_HORIZON_ON, HorizonSchedule
 from plugins.pilco.presets import GENERIC, PRESETS, preset_with
 
 if TYPE_CHECKING:
@@ -121,12 +121,7 @@ class Pilco(Learner):
         Option("grow_horizon_below", float, None, "double the planning horizon (up to the task's) after a policy search "
                "whose predicted mean cost per step, J/horizon, is below this (a horizon schedule; default: the task "
                "preset's, unicycle 0.05, else off; 0 = off)", low=0.0),
-        Option("grow_horizon_on", str, "prediction", "when the horizon schedule (grow_horizon_below > 0) doubles the "
-               "planning horizon: prediction (after a search whose J/horizon is below grow_horizon_below) or survival "
-               "(after a trial whose real episode was not aborted within the planning horizon; the threshold then "
-               "only switches the schedule on) or realised (after a trial whose real episode's mean cost per step over "
-               "the planning horizon, a fall holding its last cost, is below grow_horizon_below)",
-               choices=RULES),
+        GROW_HORIZON_ON,
         Option("plan_with_noise", bool, False, "planning feeds the policy the task's measurement noise (its input "
                "N(m, S + N) as it acts on noisy observations; needs a policy on raw states, e.g. the unicycle's; "
                "default: the task preset's, on for the unicycle; else off, the policy sees the latent state as in the "

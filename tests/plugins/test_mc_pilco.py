@@ -186,6 +186,28 @@ def test_same_seed_same_run_and_resume_equals_uninterrupted() -> None:
     assert strip(resumed.history) == strip(reference.history)
 
 
+def test_horizon_schedule_grows_the_particles_horizon_and_a_resume_continues_at_the_grown_one() -> None:
+    """PILCO's horizon schedule in mc-pilco: cart-pole's cost per step lies in (0, 1], so the realised rule at a
+    threshold of 10 doubles the planning horizon after every rollout of a learned policy (3 -> 6 -> 10, the task's),
+    logs the rollout's cost per step from trial 2, and a run interrupted after trial 2 resumes at the grown horizon."""
+    options = {**TINY, "planning_horizon": "3", "grow_horizon_below": "10", "grow_horizon_on": "realised"}
+    config = RunConfig("mc-pilco", "cartpole", seed=3, learner_options=options, task_options={"horizon": 10}, max_trials=3,
+                       eval_episodes=1)
+    strip = lambda h: [{k: v for k, v in r.items() if "seconds" not in k or k == "interaction_seconds"} for r in h]  # noqa: E731
+    tracker = MemoryTracker()
+    reference = run(config, tracker=tracker)
+    assert [h for _, h in sorted(tracker.metrics["planning_horizon"])] == [3.0, 6.0, 10.0]
+    assert [step for step, _ in sorted(tracker.metrics["rollout_cost_per_step"])] == [2, 3]
+    fixed = MemoryTracker()  # the default: no schedule, the planning horizon stays
+    run(dataclasses.replace(config, learner_options={**TINY, "planning_horizon": "3"}), tracker=fixed)
+    assert [h for _, h in sorted(fixed.metrics["planning_horizon"])] == [3.0, 3.0, 3.0]
+    interrupted = InterruptAt(2)
+    with pytest.raises(KeyboardInterrupt):
+        run(config, tracker=interrupted)
+    resumed = run(config, tracker=interrupted, resume_run_id=interrupted.run_id)
+    assert strip(resumed.history) == strip(reference.history)
+
+
 def test_planning_basis_limits_the_points_the_particles_go_through() -> None:
     """Cart-pole with 10-step episodes: 2 trials give 20 transitions; with planning_basis=8 the particles
     go through a posterior on 8 basis points (logged), with the default through all the data's."""
