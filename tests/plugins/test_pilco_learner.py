@@ -318,6 +318,26 @@ def test_a_degenerate_prediction_does_not_end_the_run(monkeypatch, error):
     assert not any(p.name.startswith("prediction_trial") for p, _ in tracker.artifacts)
 
 
+def test_fresh_start_compares_the_prediction_with_a_fall_held_as_evaluations_count_it():
+    """An episode that fell at step 8 of 20 predicted steps: its 8 costs, then its last one for the 12 steps not
+    taken (the prediction charges the fallen states too); an episode longer than the prediction counts its first 20."""
+    from types import SimpleNamespace
+
+    from harness.task import Episode
+    from plugins.pilco.learner import _realised_sum
+
+    def episode(costs: list[float], terminated: bool) -> Episode:
+        n = len(costs)
+        return Episode(np.zeros((n + 1, 2)), np.zeros((n + 1, 2)), np.zeros((n, 1)), np.array(costs), terminated)
+
+    predicted = (np.full(20, 0.65), np.zeros(20))
+    fell = SimpleNamespace(episodes=[episode([0.5] * 7 + [0.9], True)])
+    assert _realised_sum(fell, predicted) == pytest.approx(7 * 0.5 + 0.9 + 12 * 0.9)
+    rode = SimpleNamespace(episodes=[episode([0.1] * 67, False)])
+    assert _realised_sum(rode, predicted) == pytest.approx(2.0)
+    assert _realised_sum(fell, None) is None and _realised_sum(SimpleNamespace(episodes=[]), predicted) is None
+
+
 def test_stalled_rule_needs_a_still_J_and_a_confirmed_prediction():
     from plugins.pilco.learner import stalled
 
