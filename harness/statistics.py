@@ -104,3 +104,15 @@ def times_with_failures(solved: Sequence[bool], times: Sequence[float | None]) -
     """Times to success with every unsolved run as ``+inf`` (never dropped); ``(n,)``."""
     out = np.array([t if ok and t is not None else np.inf for ok, t in zip(solved, times)], dtype=np.float64)
     return out
+
+
+def wilson_interval(successes: int, n: int, z: float = 1.959963984540054) -> tuple[float, float]:
+    """The Wilson score interval for a success rate, ``successes`` of ``n`` Bernoulli trials (e.g. test
+    episodes), at the normal quantile ``z`` (default: 95 %), as fractions in ``[0, 1]``. Unlike
+    ``p +- z sqrt(p(1-p)/n)`` it stays inside ``[0, 1]`` and does not collapse to a point at 0 or n."""
+    if n < 1 or not 0 <= successes <= n:
+        raise ValueError(f"wilson_interval: {successes} successes of {n} trials (need 0 <= successes <= n, n >= 1)")
+    p = successes / n
+    centre = (p + z * z / (2 * n)) / (1 + z * z / n)
+    half = z * float(np.sqrt(p * (1 - p) / n + z * z / (4 * n * n))) / (1 + z * z / n)
+    return max(0.0, centre - half), min(1.0, centre + half)

@@ -13,6 +13,7 @@ from harness.errors import MissingArtifactsWarning
 from harness.learner_logs import declared_logs
 from harness.report.labels import file_slug
 from harness.report.records import RunRecord
+from harness.statistics import wilson_interval
 from harness.store import layout
 
 
@@ -65,11 +66,17 @@ def test_markdown(task: str, rows: Sequence[dict[str, Any]]) -> str:
              "Test episodes start from the task's initial distribution on a new environment (seed 12345 + i); they are "
              "not interaction. Success: the task's own rule. The histogram of final distances from the goal of the "
              f"representative tested run is `fig4b_{task}_<learner>.png` (the paper's Fig. 4b for the unicycle).", "",
-             "| learner | seed | solved in training | test episodes | test success rate | run |", "|---|---|---|---|---|---|"]
+             "| learner | seed | solved in training | test episodes | test success rate [95 % interval] | run |",
+             "|---|---|---|---|---|---|"]
     for r in rows:
         training = "yes" if r["solved"] else ("no" if r["finished"] else "no (run stopped before its limit)")
-        lines.append(f"| {r['learner']} | {r['seed']} | {training} | {r['test_episodes']} "
-                     f"| {100 * r['test_success_rate']:.1f} % | `{r['run_id'][:8]}` |")
+        n = r["test_episodes"]
+        interval = ""
+        if n >= 1:  # Wilson score interval of the rate over the test episodes
+            low, high = wilson_interval(round(r["test_success_rate"] * n), n)
+            interval = f" [{100 * low:.1f}, {100 * high:.1f}]"
+        lines.append(f"| {r['learner']} | {r['seed']} | {training} | {n} "
+                     f"| {100 * r['test_success_rate']:.1f} %{interval} | `{r['run_id'][:8]}` |")
     return "\n".join(lines) + "\n"
 
 

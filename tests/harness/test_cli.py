@@ -167,7 +167,7 @@ def test_eval_tests_a_saved_policy_and_logs_to_the_run(tmp_path, mlflow_uri):
     run_id = mlflow.search_runs(experiment_names=["cartpole"], filter_string="params.seed = '5'").iloc[0]["run_id"]
     result = CliRunner().invoke(main, ["eval", run_id, "--episodes", "12", "--out", str(tmp_path / "ev"), "--tracking-uri", mlflow_uri])
     assert result.exit_code == 0, result.output
-    assert "succeeded in 0.0% of 12 test episodes" in result.output
+    assert "succeeded in 0.0% of 12 test episodes (95 % interval 0.0-24.2%" in result.output  # Wilson: 1.96^2 / (12 + 1.96^2)
     import json
 
     summary = json.loads((tmp_path / "ev" / "test_summary.json").read_text())
@@ -183,7 +183,7 @@ def test_eval_tests_a_saved_policy_and_logs_to_the_run(tmp_path, mlflow_uri):
     report = CliRunner().invoke(main, ["report", "--tracking-uri", mlflow_uri, "--include-bench", "--out", str(out)])
     assert report.exit_code == 0, report.output
     table = (out / "test_cartpole.md").read_text()
-    assert f"| 5 | no | 12 | 0.0 % | `{run_id[:8]}` |" in table
+    assert f"| 5 | no | 12 | 0.0 % [0.0, 24.2] | `{run_id[:8]}` |" in table
     assert len(list(out.glob("fig4b_cartpole_random*.png"))) == 1
 
 

@@ -617,5 +617,16 @@ def test_test_table_marks_runs_stopped_before_their_limit():
     rows = [{"learner": "pilco", "seed": 0, "solved": False, "finished": False, "test_episodes": 1000, "test_success_rate": 0.0, "run_id": "abcdef123"},
             {"learner": "pilco", "seed": 1, "solved": True, "finished": True, "test_episodes": 1000, "test_success_rate": 0.931, "run_id": "bcdefa234"}]
     md = test_markdown("unicycle", rows)
-    assert "| pilco | 0 | no (run stopped before its limit) | 1000 | 0.0 % | `abcdef12` |" in md
-    assert "| pilco | 1 | yes | 1000 | 93.1 % | `bcdefa23` |" in md
+    # with the Wilson 95 % interval: 0 of 1000 -> [0, 0.38 %], 931 of 1000 -> [91.4, 94.5 %] (scipy's, below)
+    assert "| pilco | 0 | no (run stopped before its limit) | 1000 | 0.0 % [0.0, 0.4] | `abcdef12` |" in md
+    assert "| pilco | 1 | yes | 1000 | 93.1 % [91.4, 94.5] | `bcdefa23` |" in md
+
+
+@pytest.mark.parametrize("successes,n", [(0, 1000), (931, 1000), (714, 1000), (0, 12), (12, 12), (3, 7), (1, 1)])
+def test_wilson_interval_matches_scipys(successes, n):
+    from harness.statistics import wilson_interval
+
+    reference = stats.binomtest(successes, n).proportion_ci(confidence_level=0.95, method="wilson")
+    assert wilson_interval(successes, n) == pytest.approx((reference.low, reference.high), abs=1e-12)
+    with pytest.raises(ValueError, match="successes of"):
+        wilson_interval(n + 1, n)
