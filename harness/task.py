@@ -213,13 +213,14 @@ class Episode:
         return float(np.sum(self.costs))
 
     def horizon_cost(self, horizon: int) -> float:
-        """Summed cost over ``horizon`` steps, the measure evaluations report.
+        """Summed cost over the first ``horizon`` steps, the measure evaluations report (over the task's
+        horizon) and learners compare with a prediction over their planning horizon.
 
         A terminated episode holds its last cost for the ``horizon - steps`` steps it did not take
         (the region it left is absorbing: a fallen unicycle stays fallen). Without this, a policy
         that fails *sooner* would score a *lower* cost. Untruncated episodes: :attr:`total_cost`.
         """
-        return held_cost(self.costs, horizon, self.terminated)
+        return held_cost(self.costs[:horizon], horizon, self.terminated)
 
 
 def held_cost(costs: np.ndarray, horizon: int, terminated: bool) -> float:

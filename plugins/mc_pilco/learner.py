@@ -303,7 +303,7 @@ class McPilco(Learner):
                 self.metrics["policy_search_failed"] = 1.0
             if realised is not None:  # the previous policy's recorded episode, mean cost per step over its planned horizon
                 self.metrics["rollout_cost_per_step"] = realised
-            self.schedule.after_search(search if math.isfinite(search.J_after) else None)  # the prediction rule
+            self.schedule.after_search(search)  # the prediction rule (a failed search's non-finite J: no growth)
             self._state = {"controller": cpu_state_dict(controller), "hyperparameters": hyperparameters.to("cpu").as_dict(),
                            "trial": trial, "planning_horizon": self.horizon}
             yield PilcoPolicy.snapshot(controller, self.layout)

@@ -22,7 +22,7 @@ from dataclasses import dataclass
 from typing import Protocol
 
 from harness.options import Option
-from harness.task import Episode, held_cost
+from harness.task import Episode
 
 #: the values of the learner option ``grow_horizon_on``
 RULES = ("prediction", "survival", "realised")
@@ -49,7 +49,7 @@ def next_planning_horizon(horizon: int, task_horizon: int, search: _Search | Non
     """The planning horizon (steps) for the next trial under the ``prediction`` rule: doubled, up to
     ``task_horizon``, when ``grow_below`` is set and the search just done predicts a mean cost per step
     ``J/horizon`` below it (the policy already does well over the shorter horizon); otherwise unchanged."""
-    if grow_below is None or search is None or search.J_after / horizon >= grow_below:
+    if grow_below is None or search is None or not search.J_after / horizon < grow_below:  # a NaN J: no growth
         return horizon
     return doubled_horizon(horizon, task_horizon)
 
@@ -66,8 +66,8 @@ def survived_horizon(horizon: int, task_horizon: int, episode: Episode) -> int:
 
 def realised_cost_per_step(horizon: int, episode: Episode) -> float:
     """The real ``episode``'s mean cost per step over its first ``horizon`` steps, a fall within them
-    holding its last cost for the steps not taken (:func:`harness.task.held_cost`, as evaluations count)."""
-    return held_cost(episode.costs[:horizon], horizon, episode.terminated) / horizon
+    holding its last cost for the steps not taken (:meth:`harness.task.Episode.horizon_cost`, as evaluations count)."""
+    return episode.horizon_cost(horizon) / horizon
 
 
 def realised_horizon(horizon: int, task_horizon: int, episode: Episode, grow_below: float) -> int:
@@ -112,6 +112,6 @@ class HorizonSchedule:
         return realised
 
     def after_search(self, search: _Search | None) -> None:
-        """Apply the ``prediction`` rule to the policy search just done (``None``: it failed)."""
+        """Apply the ``prediction`` rule to the policy search just done (``None``, or a non-finite J: it failed)."""
         if self.rule == "prediction":
             self.horizon = next_planning_horizon(self.horizon, self.task_horizon, search, self.grow_below)

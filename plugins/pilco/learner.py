@@ -40,7 +40,7 @@ from harness.interaction import Interaction
 from harness.learner import Learner, Policy
 from harness.learner_logs import Logs, Timing, TrialFigure, save_figure
 from harness.options import Option
-from harness.task import Episode, TaskSpec, held_cost
+from harness.task import Episode, TaskSpec
 from harness.threads import run_threads, torch_threads
 from plugins.pilco.horizon import GROW_HORIZON_ON, HorizonSchedule
 from plugins.pilco.presets import GENERIC, PRESETS, preset_with
@@ -89,11 +89,10 @@ def _predicted_sum(predicted: tuple[np.ndarray, np.ndarray] | None) -> float | N
 def _realised_sum(interaction: Interaction, predicted: tuple[np.ndarray, np.ndarray] | None) -> float | None:
     """The last episode's cost over the steps a prediction covers (its first ``len(mean)`` steps). An episode
     that ended before them (a fall) holds its last cost for the steps it did not take, as evaluations count it
-    (:func:`harness.task.held_cost`): the prediction, too, charges the fallen states at every step."""
+    (:meth:`harness.task.Episode.horizon_cost`): the prediction, too, charges the fallen states at every step."""
     if predicted is None or not interaction.episodes:
         return None
-    steps, episode = len(predicted[0]), interaction.episodes[-1]
-    return held_cost(episode.costs[:steps], steps, episode.terminated)
+    return interaction.episodes[-1].horizon_cost(len(predicted[0]))
 
 
 # ---

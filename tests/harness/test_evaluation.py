@@ -16,6 +16,7 @@ def test_horizon_cost_pads_terminated_episodes_with_their_last_cost():
     assert _episode([0.5, 0.9], terminated=True).horizon_cost(5) == 0.5 + 0.9 + 3 * 0.9
     assert _episode([0.5, 0.9], terminated=False).horizon_cost(5) == 1.4  # truncated by a step limit: nothing added
     assert _episode([0.1] * 5, terminated=True).horizon_cost(5) == 0.5  # terminated on the last step
+    assert _episode([0.1] * 5 + [1.0] * 3, terminated=True).horizon_cost(5) == 0.5  # only the first 5 steps count
 
 
 def test_unicycle_evaluation_charges_a_fall_for_the_rest_of_the_horizon():

@@ -176,6 +176,7 @@ def test_horizon_schedule_doubles_up_to_the_task_horizon_when_the_policy_does_we
     assert next_planning_horizon(40, 67, good, 0.1) == 67 and next_planning_horizon(67, 67, good, 0.1) == 67
     assert next_planning_horizon(20, 67, poor, 0.1) == 20
     assert next_planning_horizon(20, 67, good, None) == 20 and next_planning_horizon(20, 67, None, 0.1) == 20
+    assert next_planning_horizon(20, 67, SimpleNamespace(J_after=float("nan")), 0.1) == 20  # a failed search's J
 
 
 def test_survival_rule_doubles_the_horizon_only_after_an_episode_that_stayed_up_for_all_planned_steps():
