@@ -120,10 +120,10 @@ class Pilco(Learner):
         Option("planning_horizon", int, None, "predicted steps in J (default: the task preset's (unicycle: 20, growing), else "
                "the task horizon)", low=1),
         Option("cost_width", float, None, "cost width used in planning (default: the task preset's, else the task's)", low=1e-6),
-        Option("grow_horizon_below", float, None, "double the planning horizon (up to the task's) after a policy search "
-               "whose predicted mean cost per step, J/horizon, is below this (a horizon schedule; default: the task "
-               "preset's, unicycle 0.05, else off; 0 = off)", low=0.0),
-        GROW_HORIZON_ON,
+        Option("grow_horizon_below", float, None, "double the planning horizon (up to the task's) when the rule "
+               "grow_horizon_on finds a mean cost per step below this (a horizon schedule; default: the task "
+               "preset's, unicycle 0.2, else off; 0 = off)", low=0.0),
+        replace(GROW_HORIZON_ON, help=GROW_HORIZON_ON.help + " (default: the task preset's, unicycle realised, else prediction)"),
         Option("plan_with_noise", bool, False, "planning feeds the policy the task's measurement noise (its input "
                "N(m, S + N) as it acts on noisy observations; needs a policy on raw states, e.g. the unicycle's; "
                "default: the task preset's, on for the unicycle; else off, the policy sees the latent state as in the "
@@ -174,8 +174,10 @@ class Pilco(Learner):
         self.layout = layout_for(spec, self.preset)
         schedule = preset.horizon_schedule
         grow = o["grow_horizon_below"] if o["grow_horizon_below"] is not None else (schedule[1] if schedule else None)
+        # a given option beats the preset's rule (the option's own default is the other tasks' rule)
+        rule = o["grow_horizon_on"] if "grow_horizon_on" in (options or {}) else preset.grow_horizon_on
         self.schedule = HorizonSchedule(o["planning_horizon"] or preset.planning_horizon or (schedule[0] if schedule else spec.horizon),
-                                        spec.horizon, grow or None, o["grow_horizon_on"])  # threshold 0: off
+                                        spec.horizon, grow or None, rule)  # threshold 0: off
         self.cost_width = o["cost_width"] or preset.cost_width
         self.num_pseudo = o["num_pseudo"] or self.preset.sparse_threshold
         tol = o["fresh_start_tol"] if o["fresh_start_tol"] is not None else preset.fresh_start_tol
@@ -209,7 +211,8 @@ class Pilco(Learner):
         used.update(planning_horizon=self.horizon, cost_width=self.cost_width or self.spec.cost.width, num_pseudo=self.num_pseudo,
                     gp_hyper_subset=self.options["gp_hyper_subset"] or self.preset.sparse_threshold,
                     threads=self.options["threads"] or run_threads(), kernel=self.kernel, fresh_start_tol=self.fresh_start_tol,
-                    grow_horizon_below=self.schedule.grow_below, plan_with_noise=self.policy_noise_std is not None)
+                    grow_horizon_below=self.schedule.grow_below, grow_horizon_on=self.schedule.rule,
+                    plan_with_noise=self.policy_noise_std is not None)
         return used
 
     @classmethod

@@ -143,26 +143,30 @@ def test_plan_with_noise_uses_the_tasks_measurement_noise_and_refuses_trig_polic
 
 def test_the_unicycles_preset_plans_with_noise_over_a_growing_horizon_and_each_part_can_be_switched_off():
     """The unicycle's defaults are the settings its tuning seeds were run with (planning noise, 20 steps doubled
-    below 0.05 per step): a default run uses (and logs as used.learner.*) what a run with those options given
-    uses. Each is an option that can be given (``plan_with_noise=false``, ``grow_horizon_below=0``);
-    other tasks keep the reference's settings, and mc-pilco ignores the PILCO learner's schedule."""
+    after a trial whose real cost per planned step was below 0.2): a default run uses (and logs as
+    used.learner.*) what a run with those options given uses. Each is an option that can be given
+    (``plan_with_noise=false``, ``grow_horizon_below=0``, ``grow_horizon_on=prediction``); other tasks keep the
+    reference's settings, and mc-pilco ignores the PILCO learner's schedule."""
     from plugins.mc_pilco.learner import McPilco
     from tasks.unicycle import Unicycle
 
     spec = Unicycle().spec
     default = Pilco(spec, {}, seed=0)
-    assert default.horizon == 20 and default.schedule.grow_below == 0.05
+    assert default.horizon == 20 and default.schedule.grow_below == 0.2 and default.schedule.rule == "realised"
     np.testing.assert_array_equal(default.policy_noise_std, spec.measurement_noise_std)
-    given = Pilco(spec, {"plan_with_noise": "true", "planning_horizon": "20", "grow_horizon_below": "0.05"}, seed=0)
-    keys = ("plan_with_noise", "planning_horizon", "grow_horizon_below")
+    given = Pilco(spec, {"plan_with_noise": "true", "planning_horizon": "20", "grow_horizon_below": "0.2",
+                         "grow_horizon_on": "realised"}, seed=0)
+    keys = ("plan_with_noise", "planning_horizon", "grow_horizon_below", "grow_horizon_on")
     assert {k: default.options_used()[k] for k in keys} == {k: given.options_used()[k] for k in keys} == {
-        "plan_with_noise": True, "planning_horizon": 20, "grow_horizon_below": 0.05}
+        "plan_with_noise": True, "planning_horizon": 20, "grow_horizon_below": 0.2, "grow_horizon_on": "realised"}
     off = Pilco(spec, {"plan_with_noise": "false", "grow_horizon_below": "0", "planning_horizon": "67"}, seed=0)
     assert off.policy_noise_std is None and off.schedule.grow_below is None and off.horizon == 67
-    assert {k: off.options_used()[k] for k in keys} == {"plan_with_noise": False, "planning_horizon": 67, "grow_horizon_below": None}
+    assert {k: off.options_used()[k] for k in keys} == {"plan_with_noise": False, "planning_horizon": 67,
+                                                         "grow_horizon_below": None, "grow_horizon_on": "realised"}
+    assert Pilco(spec, {"grow_horizon_on": "prediction"}, seed=0).schedule.rule == "prediction"
     cartpole = Pilco(CartPole().spec, {}, seed=0)
     assert cartpole.policy_noise_std is None and cartpole.schedule.grow_below is None
-    assert cartpole.options_used()["plan_with_noise"] is False
+    assert cartpole.options_used()["plan_with_noise"] is False and cartpole.schedule.rule == "prediction"
     assert McPilco(spec, {}, seed=0).horizon == spec.horizon
 
 
