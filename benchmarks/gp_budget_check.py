@@ -111,6 +111,7 @@ def main(argv: list[str] | None = None) -> None:
             sys.exit(f"run {args.run_id} recorded {len(episodes)} episodes; --train-episodes must leave some to test on (1..{len(episodes) - 1})")
         policy_trial = args.policy_trial or max(run.policy_trials())
         policy = run.policy(policy_trial)
+        horizon = run.planning_horizon_at(policy_trial)
         settings = run.settings
         own = run.saved_model(k) if k in run.model_trials() else None
         previous = run.saved_model(k - 1) if args.warm_start else None
@@ -119,7 +120,7 @@ def main(argv: list[str] | None = None) -> None:
     layout = StateLayout(spec.state_dim, spec.angle_indices, tuple(settings["model_inputs"]), tuple(settings["policy_inputs"]))
     x_train, y_train = transitions(episodes[:k], layout)
     x_test, y_test = transitions(episodes[k:], layout)
-    horizon, mean_only = run.planning_horizon, run.mean_only
+    mean_only = run.mean_only
     threshold = int(settings["preset"]["sparse_threshold"])
     num_pseudo = int(settings["num_pseudo"])
     per_step, success = real_costs(Evaluator(task, n_episodes=args.episodes, seed=200_000), policy, horizon)

@@ -76,7 +76,7 @@ def main(argv: list[str] | None = None) -> None:
         trial = args.trial if args.trial is not None else max(run.model_trials())
         saved = run.saved_model(trial)
         model, policy = run.model(trial), run.policy(trial)
-        horizon, mean_only = run.planning_horizon, run.mean_only
+        horizon, mean_only = run.planning_horizon_at(trial), run.mean_only
     params, task = run.params, run.task
     spec = task.spec
     evaluator = Evaluator(task, n_episodes=args.episodes, seed=200_000)

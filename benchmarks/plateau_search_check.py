@@ -93,7 +93,7 @@ def check(run: SavedPilcoRun, trial: int, fresh: int, evaluator: Evaluator, log=
         raise CheckpointError(f"run {run.run_id} has no model and policy of trial {trial} (models: {run.model_trials()[-1:]})")
     learner = learner_for(run, changes)
     if "planning_horizon" not in (changes or {}):  # the run's own horizon at that trial (a schedule may have grown it)
-        learner.schedule.horizon = int(run.metric("planning_horizon").get(trial, learner.horizon))
+        learner.schedule.horizon = run.planning_horizon_at(trial)
     horizon = learner.horizon
     logged = run.metric("J_after").get(trial, float("nan"))
     posterior = run.model(trial).posterior(max_basis=learner.options["planning_basis"])
@@ -163,7 +163,7 @@ def main(argv: list[str] | None = None) -> None:
         finally:
             evaluator.close()
         params = run.params
-        run_horizon = int(run.metric("planning_horizon").get(trial, horizon))
+        run_horizon = run.planning_horizon_at(trial)
     lines = [
         f"# Policy searches from several starts under one trial's model: {params['learner']} on {params['task']}, "
         f"seed {params['seed']}, run `{args.run_id[:8]}`, trial {trial}", "",

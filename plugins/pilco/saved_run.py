@@ -94,6 +94,11 @@ class SavedPilcoRun:
         """Predicted steps in J at the first trial (a horizon schedule may have grown it later)."""
         return int(self.settings["planning_horizon"])
 
+    def planning_horizon_at(self, trial: int) -> int:
+        """Predicted steps in J of trial ``trial``'s policy search: the run's ``planning_horizon`` metric at
+        that trial (a horizon schedule grows it), else :attr:`planning_horizon` (a run logged before the metric)."""
+        return int(self.metric("planning_horizon").get(trial, self.planning_horizon))
+
     @property
     def mean_only(self) -> bool:
         """Whether the run planned with the GP mean only (the ``pilco-mean`` ablation)."""

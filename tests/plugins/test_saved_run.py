@@ -58,6 +58,26 @@ def test_a_saved_run_gives_back_its_task_settings_models_policies_and_episodes(s
     assert settings_file.is_relative_to(Path(uri[len("sqlite:///"):]).parent / "mlruns") and settings_file.exists()
 
 
+def test_a_grown_horizon_is_read_per_trial_and_the_prediction_check_uses_it(tmp_path):
+    """With a horizon schedule the search of a later trial planned over more steps than the first:
+    ``planning_horizon_at`` gives each trial's (its logged metric), and the prediction check sums J over it."""
+    from benchmarks.pilco_prediction_check import main
+    from harness.tracking import MlflowTracker, default_tracking_uri
+
+    (tmp_path / "store").mkdir()
+    uri = default_tracking_uri(tmp_path / "store")
+    options = {**TINY, "planning_horizon": "3", "grow_horizon_below": "10", "grow_horizon_on": "realised"}
+    result = run(RunConfig("pilco", "cartpole", seed=0, learner_options=options, task_options={"horizon": 12}, max_trials=2,
+                           eval_episodes=2), tracker=MlflowTracker(uri))
+    with SavedPilcoRun(result.run_id, uri) as saved:
+        logged = {trial: int(h) for trial, h in saved.metric("planning_horizon").items()}
+        assert saved.planning_horizon == 3 and logged[2] > 3  # grown: a cost per step of at most 1 is below 10
+        assert [saved.planning_horizon_at(t) for t in (1, 2)] == [logged[1], logged[2]]
+    main([result.run_id, "--trial", "2", "--particles", "20", "--episodes", "2", "--tracking-uri", uri, "--out", str(tmp_path)])
+    text = (tmp_path / f"prediction_check_cartpole_{result.run_id[:8]}_t2.md").read_text()
+    assert f"planning horizon {logged[2]}." in text and f"| J = sum over {logged[2]} steps |" in text
+
+
 def test_a_missing_artifact_or_a_non_pilco_run_is_named(stored):
     uri, pilco, other = stored
     with pytest.raises(TrackingError, match="no run 'no-such-run' in sqlite:///"):
