@@ -3,29 +3,32 @@
 Usage::
 
     OMP_NUM_THREADS=1 .venv/bin/python benchmarks/gp_budget_check.py RUN_ID [--train-episodes 20]
-        [--configs 100:400 300:400 100:800 300:800] [--seeds 0] [--policy-trial K] [--episodes 100]
-        [--tracking-uri URI] [--out results/benchmarks]
+        [--configs 100:400 300:400 100:800 300:800 100:300:600] [--seeds 0] [--policy-trial K] [--episodes 100]
+        [--particles 0] [--warm-start] [--tracking-uri URI] [--out results/benchmarks]
 
 Takes the recorded episodes of a PILCO run, trains the dynamics GP from scratch on the first
-``--train-episodes`` of them once per budget ``FITC_EVALS:HYPER_SUBSET`` (the learner options
-``gp_fitc_evals`` and ``gp_hyper_subset``; ``all`` trains the hyperparameters on every point, as
-the reference code does) and seed (the random hyperparameter subset and first pseudo-inputs), and
-scores every model on what the run recorded *after* those episodes (the region the later, better
-policies visited):
+``--train-episodes`` of them once per budget ``FITC_EVALS:HYPER_SUBSET[:PSEUDO_INPUTS]`` (the learner
+options ``gp_fitc_evals``, ``gp_hyper_subset`` and ``num_pseudo``; ``all`` trains the hyperparameters
+on every point, as the reference code does; with ``PSEUDO_INPUTS`` the model is FITC with that many
+above as many points, and a full GP below) and seed (the random hyperparameter subset and first
+pseudo-inputs), and scores every model on what the run recorded *after* those episodes (the region
+the later, better policies visited):
 
 * **one-step NLPD**: mean negative log predictive density of the held-out state differences
   (nats per transition, summed over the state dimensions; lower is better);
 * **SMSE**: held-out mean squared error over the variance of the targets, averaged over the state
   dimensions (0 = perfect, 1 = no better than the mean);
 * **J of a later policy**: the closed-form expected cost (PILCO's moment matching, what the policy
-  search minimises) of the policy the run handed over at ``--policy-trial`` (default: its last),
-  beside that policy's real cost over ``--episodes`` episodes: how far each model misjudges it.
+  search minimises, as the run's search at ``--policy-trial`` planned it: horizon, planning noise;
+  the task's cost width) of the policy the run handed over at ``--policy-trial`` (default: its last),
+  beside that policy's real cost over ``--episodes`` episodes: how far each model misjudges it;
+  ``--particles N`` adds the same model's J by Monte Carlo (model bias without moment matching's error).
 
-The run's own GP at trial ``--train-episodes`` (trained on the same episodes, but warm-started
-over the trials before, with the run's budget) is scored too. From scratch the first pseudo-input
-optimisation gets 3x its budget (as in a run's first sparse trial). ``--warm-start`` adds, per budget,
-two refits from the run's GP at trial ``K - 1`` (what the run itself does each trial): keeping its
-pseudo-inputs, or drawing fresh ones from the data with the same budget. Writes
+The run's own GP of the trial that trained on the same episodes (warm-started over the trials
+before, with the run's budget) is scored too. From scratch the first pseudo-input optimisation gets
+3x its budget (as in a run's first sparse trial). ``--warm-start`` adds, per budget, two refits from
+the run's GP of the trial before (what the run itself does each trial): keeping its pseudo-inputs,
+or drawing fresh ones from the data with the same budget. Writes
 ``gp_budget_check_<task>_<run>_seeds<S>[_warm].md`` into ``--out``.
 """
 
@@ -49,18 +52,22 @@ from harness.errors import exit_on_error  # noqa: E402
 from harness.evaluation import Evaluator  # noqa: E402
 from plugins.pilco.gp import GPModel  # noqa: E402
 from plugins.pilco.policy import transitions  # noqa: E402
-from plugins.pilco.objective import PolicyObjective  # noqa: E402
+from plugins.pilco.sampling import sampled_costs  # noqa: E402
 from plugins.pilco.propagate import StateLayout  # noqa: E402
 from plugins.pilco.saved_run import SavedPilcoRun  # noqa: E402
 
 
-def parse_config(text: str) -> tuple[int, int | None]:
-    """``"300:800"`` -> ``(300, 800)``; ``"100:all"`` -> ``(100, None)`` (every point)."""
+def parse_config(text: str) -> tuple[int, int | None, int | None]:
+    """``"300:800"`` -> ``(300, 800, None)``; ``"100:all"`` -> ``(100, None, None)`` (every point);
+    ``"100:300:600"`` -> ``(100, 300, 600)`` (600 pseudo-inputs instead of the run's)."""
     try:
-        fitc, subset = text.split(":")
-        return int(fitc), None if subset == "all" else int(subset)
+        fitc, subset, *pseudo = text.split(":")
+        if len(pseudo) > 1:
+            raise ValueError(text)
+        return int(fitc), None if subset == "all" else int(subset), int(pseudo[0]) if pseudo else None
     except ValueError:
-        raise argparse.ArgumentTypeError(f"config {text!r}: expected FITC_EVALS:HYPER_SUBSET, e.g. 300:800 or 100:all") from None
+        raise argparse.ArgumentTypeError(
+            f"config {text!r}: expected FITC_EVALS:HYPER_SUBSET[:PSEUDO_INPUTS], e.g. 300:800, 100:all or 100:300:600") from None
 
 
 def one_step_scores(model: GPModel, x: np.ndarray, y: np.ndarray) -> tuple[float, float]:
@@ -81,46 +88,57 @@ def predictive_scores(mean: np.ndarray, var: np.ndarray, y: np.ndarray) -> tuple
     return float(nlpd.sum(1).mean()), float(smse.mean())
 
 
-def closed_form_J(model: GPModel, policy, spec, horizon: int, mean_only: bool) -> float:
-    """PILCO's moment-matching ``J = sum_t E[c(x_t)]`` of ``policy`` under ``model``."""
-    objective = PolicyObjective(policy.controller, model.posterior(), policy.layout, spec.cost, spec.init_mean,
-                                spec.init_cov, horizon, mean_only=mean_only)
+def closed_form_J(objective) -> float:
+    """PILCO's moment-matching ``J = sum_t E[c(x_t)]`` of ``objective``."""
     with torch.no_grad():
         return float(objective.step_costs()[0].sum())
+
+
+def sampled_J(objective, particles: int) -> float:
+    """The same model's expected cost by Monte Carlo (``particles`` trajectories; NaN for 0 particles)."""
+    return float(sampled_costs(objective, particles, seed=0).sum()) if particles else math.nan
 
 
 def main(argv: list[str] | None = None) -> None:
     parser = argparse.ArgumentParser(description=__doc__.splitlines()[0])
     parser.add_argument("run_id")
     parser.add_argument("--train-episodes", type=int, default=20)
-    parser.add_argument("--configs", type=parse_config, nargs="+", default=[(100, 400), (300, 400), (100, 800), (300, 800)])
+    parser.add_argument("--configs", type=parse_config, nargs="+",
+                        default=[(100, 400, None), (300, 400, None), (100, 800, None), (300, 800, None)])
     parser.add_argument("--seeds", type=int, nargs="+", default=[0])
     parser.add_argument("--policy-trial", type=int, default=None)
     parser.add_argument("--episodes", type=int, default=100)
+    parser.add_argument("--particles", type=int, default=0,
+                        help="also the later policy's J by Monte Carlo through each model (this many trajectories; 0: off)")
     parser.add_argument("--warm-start", action="store_true",
                         help="also refit from the run's GP at trial K-1 (as the run did), keeping its pseudo-inputs or drawing fresh ones")
     parser.add_argument("--tracking-uri", default=None)
     parser.add_argument("--out", type=Path, default=ROOT / "results" / "benchmarks")
     args = parser.parse_args(argv)
     torch.set_num_threads(1)
-
-    k = args.train_episodes
     with SavedPilcoRun(args.run_id, args.tracking_uri) as run:
-        episodes = run.episodes()
-        if not 1 <= k < len(episodes):
-            sys.exit(f"run {args.run_id} recorded {len(episodes)} episodes; --train-episodes must leave some to test on (1..{len(episodes) - 1})")
-        policy_trial = args.policy_trial or max(run.policy_trials())
-        policy = run.policy(policy_trial)
-        horizon = run.planning_horizon_at(policy_trial)
-        settings = run.settings
-        own = run.saved_model(k) if k in run.model_trials() else None
-        previous = run.saved_model(k - 1) if args.warm_start else None
+        check(run, args, argv)
+
+
+def check(run: SavedPilcoRun, args: argparse.Namespace, argv: list[str] | None) -> None:
+    """Fit, score and write the report (``run`` stays open: the objectives read its settings)."""
+    k = args.train_episodes
+    episodes = run.episodes()
+    if not 1 <= k < len(episodes):
+        sys.exit(f"run {args.run_id} recorded {len(episodes)} episodes; --train-episodes must leave some to test on (1..{len(episodes) - 1})")
+    policy_trial = args.policy_trial or max(run.policy_trials())
+    policy = run.policy(policy_trial)
+    horizon = run.planning_horizon_at(policy_trial)
+    settings = run.settings
+    own_trial = k - run.initial_rollouts + 1  # the trial whose GP was trained on the first k episodes
+    own = run.model(own_trial) if own_trial in run.model_trials() else None
+    previous = run.model(own_trial - 1) if args.warm_start and own_trial - 1 in run.model_trials() else None
+    if args.warm_start and previous is None:
+        sys.exit(f"--warm-start: run {args.run_id} saved no GP at trial {own_trial - 1} (the one before the first {k} episodes' trial)")
     params, task = run.params, run.task
-    spec = task.spec
-    layout = StateLayout(spec.state_dim, spec.angle_indices, tuple(settings["model_inputs"]), tuple(settings["policy_inputs"]))
+    layout = StateLayout(task.spec.state_dim, task.spec.angle_indices, tuple(settings["model_inputs"]), tuple(settings["policy_inputs"]))
     x_train, y_train = transitions(episodes[:k], layout)
     x_test, y_test = transitions(episodes[k:], layout)
-    mean_only = run.mean_only
     threshold = int(settings["preset"]["sparse_threshold"])
     num_pseudo = int(settings["num_pseudo"])
     per_step, success = real_costs(Evaluator(task, n_episodes=args.episodes, seed=200_000), policy, horizon)
@@ -130,51 +148,58 @@ def main(argv: list[str] | None = None) -> None:
 
     rows = []
 
-    def fit_and_score(label: str, seed: int, fitc_evals: int, subset: int | None, warm_start=None, refresh: bool = False) -> None:
-        """Train a GP on the training transitions, score it on the held-out ones, add a row."""
-        model = GPModel(sparse_threshold=threshold, num_pseudo=num_pseudo, max_evals_fitc=fitc_evals,
-                        hyper_subset=len(x_train) if subset is None else subset, refresh_pseudo=refresh)
-        start = time.process_time()
-        fit = model.fit(x_train, y_train, warm_start=warm_start, seed=seed)
-        cpu = time.process_time() - start
+    def score(label: str, seed: str, cpu: str, model: GPModel) -> None:
+        """Held-out scores and the later policy's J under ``model``, as a row."""
+        objective = run.objective(policy_trial, policy, model.posterior(), task_cost=True)
         nlpd, smse = one_step_scores(model, x_test, y_test)
-        J = closed_form_J(model, policy, spec, horizon, mean_only)
-        rows.append((label, str(seed), f"{cpu:.0f}", nlpd, smse, J))
-        print(f"{label} seed {seed}: fit {cpu:.0f} s CPU ({fit.evaluations} evaluations), NLPD {nlpd:.3f}, SMSE {smse:.4f}, "
-              f"J {J:.2f}", flush=True)
+        J, J_smp = closed_form_J(objective), sampled_J(objective, args.particles)
+        rows.append((label, seed, cpu, nlpd, smse, J, J_smp))
+        print(f"{label} seed {seed}: fit {cpu} s CPU, NLPD {nlpd:.3f}, SMSE {smse:.4f}, J {J:.2f}, sampled {J_smp:.2f}", flush=True)
+
+    def fit_and_score(label: str, seed: int, fitc_evals: int, subset: int | None, pseudo: int | None, warm_start=None,
+                      refresh: bool = False) -> None:
+        """Train a GP on the training transitions, score it on the held-out ones, add a row."""
+        m = num_pseudo if pseudo is None else pseudo
+        model = GPModel(sparse_threshold=threshold if pseudo is None else m, num_pseudo=m,
+                        max_evals_fitc=fitc_evals, hyper_subset=len(x_train) if subset is None else subset, refresh_pseudo=refresh)
+        start = time.process_time()
+        model.fit(x_train, y_train, warm_start=warm_start, seed=seed)
+        score(label, str(seed), f"{time.process_time() - start:.0f}", model)
 
     if own is not None:
-        model = GPModel()
-        model.load_state_dict(own["gp"])
-        budget = f"run's own GP ({params.get('learner.gp_fitc_evals', '?')}:{params.get('learner.gp_hyper_subset', '?')}, warm-started)"
-        rows.append((budget, "", "", *one_step_scores(model, x_test, y_test), closed_form_J(model, policy, spec, horizon, mean_only)))
-    for fitc_evals, subset in args.configs:
+        score(f"run's own GP at trial {own_trial} ({params.get('learner.gp_fitc_evals', '?')}:"
+              f"{params.get('used.learner.gp_hyper_subset', params.get('learner.gp_hyper_subset', '?'))}, warm-started)", "", "", own)
+    for fitc_evals, subset, pseudo in args.configs:
         for seed in args.seeds:
-            label = f"{fitc_evals}:{'all' if subset is None else subset}"
-            fit_and_score(label, seed, fitc_evals, subset)
-            if previous is not None:  # the run's trial-(k-1) GP as warm start, with the same FITC budget either way
-                warm = GPModel()
-                warm.load_state_dict(previous["gp"])
+            label = f"{fitc_evals}:{'all' if subset is None else subset}" + (f":{pseudo}" if pseudo is not None else "")
+            fit_and_score(label, seed, fitc_evals, subset, pseudo)
+            if previous is not None and pseudo is None:  # the run's previous GP as warm start, same FITC budget either way
                 for refresh, what in ((False, "its pseudo-inputs"), (True, "fresh pseudo-inputs")):
-                    fit_and_score(f"{label} from the run's trial-{k - 1} GP, {what}", seed, fitc_evals, subset,
-                                  warm.hyperparameters, refresh)
+                    fit_and_score(f"{label} from the run's trial-{own_trial - 1} GP, {what}", seed, fitc_evals, subset, None,
+                                  previous.hyperparameters, refresh)
 
+    sampled = args.particles > 0
     lines = [
         f"# GP training budget check: {params['learner']} on {params['task']}, run `{args.run_id}`", "",
         f"Command: `{command_line(__file__, argv, env='OMP_NUM_THREADS=1')}`  ",
         f"Run options: {', '.join(f'{key}={v}' for key, v in sorted(params.items()) if key.startswith(('task.', 'learner.gp_'))) or 'defaults'}.", "",
         f"Trained on the run's first {k} episodes ({len(x_train)} transitions; FITC with {num_pseudo} pseudo-inputs above "
         f"{threshold} points), scored on its remaining {len(episodes) - k} episodes ({len(x_test)} transitions). "
-        f"Budget = `gp_fitc_evals:gp_hyper_subset` (pseudo-input evaluations per trial, 3x from scratch : points training the "
-        f"hyperparameters). J: closed-form expected cost over {horizon} steps of the policy handed over at trial "
-        f"{policy_trial}; its **real** cost over {args.episodes} episodes is **{real:.2f}** (success {100 * success:.0f} %). "
+        f"Budget = `gp_fitc_evals:gp_hyper_subset[:pseudo-inputs]` (pseudo-input evaluations per trial, 3x from scratch : points "
+        f"training the hyperparameters : FITC pseudo-inputs, where not the run's {num_pseudo}). J: closed-form expected cost over "
+        f"{horizon} steps of the policy handed over at trial {policy_trial}, as that trial's search planned it but with the task's "
+        f"cost width" + (f"; sampled: the same model by Monte Carlo ({args.particles} trajectories)" if sampled else "") +
+        f"; its **real** cost over {args.episodes} episodes is **{real:.2f}** (success {100 * success:.0f} %). "
         "Fit time: CPU seconds on one thread.", "",
-        "| budget | seed | fit CPU s | held-out NLPD (nats/transition) | held-out SMSE | J of the later policy | J - real |",
-        "|---|---|---|---|---|---|---|",
+        "| budget | seed | fit CPU s | held-out NLPD (nats/transition) | held-out SMSE | J of the later policy | J - real |"
+        + (" J sampled | sampled - real |" if sampled else ""),
+        "|---|---|---|---|---|---|---|" + ("---|---|" if sampled else ""),
     ]
     lines += [f"| {label} | {seed} | {cpu} | {nlpd:.3f} | {smse:.4f} | {J:.2f} | {J - real:+.2f} |"
-              for label, seed, cpu, nlpd, smse, J in rows]
-    write_report(lines, args.out / f"gp_budget_check_{params['task']}_{args.run_id[:8]}_seeds{'-'.join(map(str, args.seeds))}{'_warm' if args.warm_start else ''}.md")
+              + (f" {J_smp:.2f} | {J_smp - real:+.2f} |" if sampled else "")
+              for label, seed, cpu, nlpd, smse, J, J_smp in rows]
+    write_report(lines, args.out / f"gp_budget_check_{params['task']}_{args.run_id[:8]}_seeds{'-'.join(map(str, args.seeds))}"
+                 f"{'_warm' if args.warm_start else ''}.md")
 
 
 if __name__ == "__main__":

@@ -36,7 +36,6 @@ from benchmarks.report_file import command_line, write_report  # noqa: E402
 from harness.errors import exit_on_error  # noqa: E402
 from harness.evaluation import Evaluator  # noqa: E402
 from plugins.pilco.policy import linear_policy_from_gain  # noqa: E402
-from plugins.pilco.objective import PolicyObjective  # noqa: E402
 from plugins.pilco.sampling import sampled_costs  # noqa: E402
 from plugins.pilco.saved_run import SavedPilcoRun  # noqa: E402
 from tasks.unicycle_lqr import riding_lqr  # noqa: E402
@@ -75,23 +74,23 @@ def main(argv: list[str] | None = None) -> None:
     with SavedPilcoRun(args.run_id, args.tracking_uri) as run:
         trial = args.trial if args.trial is not None else max(run.model_trials())
         saved = run.saved_model(trial)
-        model, policy = run.model(trial), run.policy(trial)
-        horizon, mean_only = run.planning_horizon_at(trial), run.mean_only
+        posterior, policy = run.model(trial).posterior(), run.policy(trial)
+        horizon = run.planning_horizon_at(trial)
+        noise = run.option_used("plan_with_noise") == "True"
+        lqr_policies = [linear_policy_from_gain(run.task.spec, *riding_lqr(run.task, speed)) for speed in args.lqr_speeds]
+        objectives = [run.objective(trial, p, posterior, task_cost=True) for p in [policy, *lqr_policies]]
     params, task = run.params, run.task
-    spec = task.spec
     evaluator = Evaluator(task, n_episodes=args.episodes, seed=200_000)
 
-    def check(policy) -> tuple[np.ndarray, np.ndarray, np.ndarray, float]:
-        objective = PolicyObjective(policy.controller, model.posterior(), policy.layout, spec.cost, spec.init_mean,
-                                    spec.init_cov, horizon, mean_only=mean_only)
+    def check(policy, objective) -> tuple[np.ndarray, np.ndarray, np.ndarray, float]:
         with torch.no_grad():
             closed = objective.step_costs()[0].numpy()
         return (closed, sampled_costs(objective, args.particles, seed=0), *real_costs(evaluator, policy, horizon))
 
-    closed, sampled, real, success = check(policy)
+    closed, sampled, real, success = check(policy, objectives[0])
     references = []
-    for speed in args.lqr_speeds:
-        c, smp, r, ok = check(linear_policy_from_gain(spec, *riding_lqr(task, speed)))
+    for speed, lqr, objective in zip(args.lqr_speeds, lqr_policies, objectives[1:]):
+        c, smp, r, ok = check(lqr, objective)
         references.append((f"riding LQR {speed:g} m/s", c.sum(), smp.sum(), r.sum(), ok))
 
     steps = sorted({1, 2, 5, 10, 15, 20, 30, 40, 50, horizon} & set(range(1, horizon + 1)))
@@ -99,7 +98,8 @@ def main(argv: list[str] | None = None) -> None:
         f"# Prediction check: {params['learner']} on {params['task']}, run `{args.run_id}`, trial {trial}", "",
         f"Command: `{command_line(__file__, argv)}`  ",
         f"Task options: {', '.join(f'{k[5:]}={v}' for k, v in sorted(params.items()) if k.startswith('task.')) or 'defaults'}; "
-        f"GP on {int(saved['gp']['inputs'].shape[0])} points; planning horizon {horizon}.", "",
+        f"GP on {int(saved['gp']['inputs'].shape[0])} points; planning horizon {horizon}; J as the run planned it "
+        f"({'with' if noise else 'without'} measurement noise at the policy's input), with the task's cost width.", "",
         "Expected cost of the policy handed over at this trial, per predicted step: **closed form** = PILCO's "
         "moment matching (what the policy search minimised); **sampled** = the same GP and policy by Monte Carlo "
         f"({args.particles} particles); **real** = the real task ({args.episodes} episodes, a fall held to the end). "

@@ -48,7 +48,8 @@ ROOT = Path(__file__).resolve().parents[1]
 sys.path.insert(0, str(ROOT))
 
 from benchmarks.report_file import command_line, machine_line, write_report  # noqa: E402
-from benchmarks.swingup_failure_modes import add_test_arguments, wilson_interval  # noqa: E402
+from benchmarks.swingup_failure_modes import add_test_arguments  # noqa: E402
+from harness.statistics import wilson_interval  # noqa: E402
 from harness.errors import CheckpointError, exit_on_error  # noqa: E402
 from harness.evaluation import Evaluator  # noqa: E402
 from harness.options import parse_assignments  # noqa: E402

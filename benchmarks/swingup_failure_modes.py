@@ -23,7 +23,6 @@ distribution (the same initial states for every policy). Reported beside the run
 from __future__ import annotations
 
 import argparse
-import math
 import sys
 import time
 from pathlib import Path
@@ -38,20 +37,11 @@ from benchmarks.report_file import command_line, write_report  # noqa: E402
 from harness.errors import CheckpointError, exit_on_error  # noqa: E402
 from harness.evaluation import Evaluator  # noqa: E402
 from harness.task import Episode  # noqa: E402
+from harness.statistics import wilson_interval  # noqa: E402
 from plugins.pilco.saved_run import SavedPilcoRun  # noqa: E402
 
 #: failure classes, in table order
 OUTCOMES = ("success", "never reached", "reached, fell away", "reached, cut off")
-
-
-def wilson_interval(successes: int, n: int, z: float = 1.96) -> tuple[float, float]:
-    """Wilson score interval of a binomial proportion (e.g. 37 of 100 -> (0.28, 0.47))."""
-    if n == 0:
-        return (0.0, 1.0)
-    p = successes / n
-    centre = (p + z * z / (2 * n)) / (1 + z * z / n)
-    half = z * math.sqrt(p * (1 - p) / n + z * z / (4 * n * n)) / (1 + z * z / n)
-    return (max(0.0, centre - half), min(1.0, centre + half))
 
 
 def add_test_arguments(parser: argparse.ArgumentParser, episodes: int = 100) -> None:

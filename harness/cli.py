@@ -223,9 +223,9 @@ def eval_command(run_id: str, episodes: int, seed: int, trial: int | None, out_d
     from harness.testrun import evaluate_saved_policy
 
     report = evaluate_saved_policy(run_id, episodes, seed, tracking_uri, Path(out_dir) if out_dir else None, trial)
-    from harness.statistics import wilson_interval
+    from harness.statistics import rate_interval
 
-    low, high = wilson_interval(round(report.success_rate * report.episodes), report.episodes)
+    low, high = rate_interval(report.success_rate, report.episodes)
     click.echo(
         f"{report.task}: {report.policy_artifact} succeeded in {100 * report.success_rate:.1f}% of {report.episodes} "
         f"test episodes (95 % interval {100 * low:.1f}-{100 * high:.1f}%; mean cost {report.mean_cost:.2f})"

@@ -116,3 +116,8 @@ def wilson_interval(successes: int, n: int, z: float = 1.959963984540054) -> tup
     centre = (p + z * z / (2 * n)) / (1 + z * z / n)
     half = z * float(np.sqrt(p * (1 - p) / n + z * z / (4 * n * n))) / (1 + z * z / n)
     return max(0.0, centre - half), min(1.0, centre + half)
+
+
+def rate_interval(rate: float, n: int) -> tuple[float, float]:
+    """:func:`wilson_interval` of a success rate measured over ``n`` episodes (``rate * n`` is a count)."""
+    return wilson_interval(round(rate * n), n)

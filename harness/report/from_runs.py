@@ -13,7 +13,7 @@ from harness.errors import MissingArtifactsWarning
 from harness.learner_logs import declared_logs
 from harness.report.labels import file_slug
 from harness.report.records import RunRecord
-from harness.statistics import wilson_interval
+from harness.statistics import rate_interval
 from harness.store import layout
 
 
@@ -73,7 +73,7 @@ def test_markdown(task: str, rows: Sequence[dict[str, Any]]) -> str:
         n = r["test_episodes"]
         interval = ""
         if n >= 1:  # Wilson score interval of the rate over the test episodes
-            low, high = wilson_interval(round(r["test_success_rate"] * n), n)
+            low, high = rate_interval(r["test_success_rate"], n)
             interval = f" [{100 * low:.1f}, {100 * high:.1f}]"
         lines.append(f"| {r['learner']} | {r['seed']} | {training} | {n} "
                      f"| {100 * r['test_success_rate']:.1f} %{interval} | `{r['run_id'][:8]}` |")

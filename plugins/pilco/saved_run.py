@@ -38,6 +38,8 @@ from harness.store.layout import trial_folder
 from harness.task import Episode
 from harness.testrun import task_options
 from plugins.pilco.gp import GPModel
+from plugins.pilco.objective import PolicyObjective
+from plugins.pilco.posterior import GPPosterior
 from plugins.pilco.presets import Preset
 from plugins.pilco.propagate import StateLayout
 
@@ -103,6 +105,29 @@ class SavedPilcoRun:
     def mean_only(self) -> bool:
         """Whether the run planned with the GP mean only (the ``pilco-mean`` ablation)."""
         return bool(self.settings["mean_only"])
+
+    def option_used(self, name: str) -> str | None:
+        """The learner option ``name`` as the run used it (logged as ``used.learner.<name>`` where the
+        preset decided it, else as given), or ``None`` for a run logged before the option existed."""
+        return self.params.get(f"used.learner.{name}", self.params.get(f"learner.{name}"))
+
+    @property
+    def initial_rollouts(self) -> int:
+        """Random episodes before the first trial: trial K's GP is trained on the first
+        ``initial_rollouts + K - 1`` episodes."""
+        return int(self.settings["preset"]["initial_rollouts"])
+
+    def objective(self, trial: int, policy, posterior: GPPosterior | None = None, task_cost: bool = False) -> PolicyObjective:
+        """J of ``policy`` as trial ``trial``'s policy search computed it: that trial's planning horizon,
+        the run's cost width, ``mean_only`` and measurement noise at the policy's input (``plan_with_noise``),
+        under ``posterior`` (default: the GP trained at that trial). ``task_cost``: the task's own cost
+        width instead of the run's planning width (what a real episode's cost is measured with)."""
+        spec = self.task.spec
+        noise = self.option_used("plan_with_noise") == "True"
+        return PolicyObjective(policy.controller, self.model(trial).posterior() if posterior is None else posterior,
+                               policy.layout, spec.cost, spec.init_mean, spec.init_cov, self.planning_horizon_at(trial),
+                               mean_only=self.mean_only, width=None if task_cost else self.settings.get("cost_width"),
+                               policy_noise_std=spec.measurement_noise_std if noise else None)
 
     def model_trials(self) -> list[int]:
         """Trials with a saved GP (``trialKKK/`` folders), ascending."""

@@ -58,24 +58,62 @@ def test_a_saved_run_gives_back_its_task_settings_models_policies_and_episodes(s
     assert settings_file.is_relative_to(Path(uri[len("sqlite:///"):]).parent / "mlruns") and settings_file.exists()
 
 
-def test_a_grown_horizon_is_read_per_trial_and_the_prediction_check_uses_it(tmp_path):
-    """With a horizon schedule the search of a later trial planned over more steps than the first:
-    ``planning_horizon_at`` gives each trial's (its logged metric), and the prediction check sums J over it."""
-    from benchmarks.pilco_prediction_check import main
+def _stored_run(tmp_path: Path, task: str, options: dict[str, str], trials: int):
+    """A tiny PILCO run (task horizon 12, seed 0) into a fresh store under ``tmp_path``: ``(uri, result)``."""
     from harness.tracking import MlflowTracker, default_tracking_uri
 
     (tmp_path / "store").mkdir()
     uri = default_tracking_uri(tmp_path / "store")
+    return uri, run(RunConfig("pilco", task, seed=0, learner_options=options, task_options={"horizon": 12}, max_trials=trials,
+                              eval_episodes=2), tracker=MlflowTracker(uri))
+
+
+def test_a_grown_horizon_is_read_per_trial_and_the_prediction_check_uses_it(tmp_path):
+    """With a horizon schedule the search of a later trial planned over more steps than the first:
+    ``planning_horizon_at`` gives each trial's (its logged metric), and the prediction check sums J over it."""
+    from benchmarks.pilco_prediction_check import main
+
     options = {**TINY, "planning_horizon": "3", "grow_horizon_below": "10", "grow_horizon_on": "realised"}
-    result = run(RunConfig("pilco", "cartpole", seed=0, learner_options=options, task_options={"horizon": 12}, max_trials=2,
-                           eval_episodes=2), tracker=MlflowTracker(uri))
+    uri, result = _stored_run(tmp_path, "cartpole", options, trials=2)
     with SavedPilcoRun(result.run_id, uri) as saved:
         logged = {trial: int(h) for trial, h in saved.metric("planning_horizon").items()}
         assert saved.planning_horizon == 3 and logged[2] > 3  # grown: a cost per step of at most 1 is below 10
         assert [saved.planning_horizon_at(t) for t in (1, 2)] == [logged[1], logged[2]]
     main([result.run_id, "--trial", "2", "--particles", "20", "--episodes", "2", "--tracking-uri", uri, "--out", str(tmp_path)])
     text = (tmp_path / f"prediction_check_cartpole_{result.run_id[:8]}_t2.md").read_text()
-    assert f"planning horizon {logged[2]}." in text and f"| J = sum over {logged[2]} steps |" in text
+    assert f"planning horizon {logged[2]};" in text and f"| J = sum over {logged[2]} steps |" in text
+
+
+def test_a_trials_objective_is_rebuilt_as_the_run_planned_it_and_the_gp_budget_check_uses_it(tmp_path):
+    """Planning noise, a cost width of its own and two random rollouts: ``objective(trial, policy)`` gives
+    the J the run's search logged, ``task_cost`` the task's width instead, and the GP budget check takes
+    the own GP of the trial that was trained on its training episodes."""
+    from benchmarks.gp_budget_check import main
+
+    options = {**TINY, "plan_with_noise": "true", "cost_width": "0.5", "initial_rollouts": "2"}
+    # the unicycle: its linear policy sees raw state entries, which planning noise needs
+    uri, result = _stored_run(tmp_path, "unicycle", options, trials=3)
+    with SavedPilcoRun(result.run_id, uri) as saved:
+        assert saved.initial_rollouts == 2 and saved.option_used("plan_with_noise") == "True"
+        assert saved.option_used("controller") == "linear" and saved.option_used("no_such_option") is None
+        # trial K's GP was trained on the first 2 + K - 1 episodes
+        # (a fall's last transition is dropped)
+        assert saved.saved_model(2)["gp"]["inputs"].shape[0] == sum(ep.steps - ep.terminated for ep in saved.episodes()[:3])
+        policy = saved.policy(2)
+        planned, on_task = saved.objective(2, policy), saved.objective(2, policy, task_cost=True)
+        assert planned.policy_noise is not None
+        with torch.no_grad():
+            J, J_task = float(planned.step_costs()[0].sum()), float(on_task.step_costs()[0].sum())
+    assert J == pytest.approx(saved.metric("J_after")[2], rel=1e-6)  # what the run's search computed
+    assert abs(J_task - J) > 1e-3 * J  # the task's width 1.0 is another cost
+    main([result.run_id, "--train-episodes", "3", "--policy-trial", "2", "--configs", "5:all", "5:all:10", "--particles", "50", "--episodes", "2",
+          "--tracking-uri", uri, "--out", str(tmp_path)])
+    text = (tmp_path / f"gp_budget_check_unicycle_{result.run_id[:8]}_seeds0.md").read_text()
+    rows = {line.split("|")[1].strip(): line for line in text.splitlines() if line.startswith("| ") and "seed" not in line}
+    assert set(rows) == {"run's own GP at trial 2 (100:300, warm-started)", "5:all", "5:all:10"}
+    own = [float(c) for c in rows["run's own GP at trial 2 (100:300, warm-started)"].split("|")[6:10]]
+    assert own[0] == pytest.approx(J_task, abs=0.006)  # its closed-form J is the task-width J above (2 decimals)
+    assert all(np.isfinite(own))  # the sampled J and its gap are reported
 
 
 def test_a_missing_artifact_or_a_non_pilco_run_is_named(stored):
@@ -107,12 +145,8 @@ def test_swingup_failure_modes_classes_every_test_episode(stored, tmp_path):
 
 
 def test_swingup_failure_modes_pure_parts():
-    from benchmarks.swingup_failure_modes import outcome, wilson_interval
+    from benchmarks.swingup_failure_modes import outcome
 
-    # the Wilson bounds are the two roots p of (k/n - p)^2 = z^2 p (1 - p) / n
-    for k, n in [(37, 100), (0, 10), (9, 10), (100, 100)]:
-        for p in wilson_interval(k, n):
-            assert (k / n - p) ** 2 == pytest.approx(1.96 ** 2 * p * (1 - p) / n, abs=1e-12)
     radius = 0.1
     assert outcome(np.array([1.0, 0.5, 0.3]), radius, solved=False) == "never reached"
     assert outcome(np.array([1.0, 0.05, 0.3]), radius, solved=False) == "reached, fell away"
