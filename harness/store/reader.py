@@ -235,10 +235,6 @@ class RunReader:
                 found += [a.path for a in self.artifacts(entry.path) if fnmatch(a.name, pattern)]
         return sorted(found, key=lambda p: Path(p).name)
 
-    def trials_with_files(self) -> list[int]:
-        """Trials whose learner attached files (``trialKKK/`` folders), ascending."""
-        return sorted(t for a in self.artifacts() if a.is_dir and (t := layout.trial_of_folder(a.path)) is not None)
-
     def episodes(self) -> list[Episode]:
         """Every interaction episode of the run, in the order they happened (random ones first).
 

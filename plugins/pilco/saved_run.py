@@ -24,6 +24,7 @@ from __future__ import annotations
 
 import json
 import pickle
+from dataclasses import asdict
 from functools import cached_property
 from pathlib import Path
 from typing import Any
@@ -88,8 +89,32 @@ class SavedPilcoRun:
 
     @cached_property
     def settings(self) -> dict[str, Any]:
-        """The learner's resolved settings (``pilco_settings.json``)."""
-        return json.loads(self.file(f"{trial_folder(1)}/pilco_settings.json").read_text())
+        """The learner's resolved settings (``pilco_settings.json``). Where a store kept only the later
+        trials' folders, rebuilt from the earliest saved GP's preset and layout, the options the run was
+        given and its logged first planning horizon (as ``Pilco.__init__`` resolves them)."""
+        try:
+            return json.loads(self.file(f"{trial_folder(1)}/pilco_settings.json").read_text())
+        except CheckpointError:
+            trials = self.model_trials()
+            if not trials:
+                raise
+        saved = self.saved_model(trials[0])
+        preset, layout = saved["preset"], saved["layout"]
+
+        def given(name: str) -> str | None:
+            value = self.params.get(f"learner.{name}")
+            return None if value in (None, "None") else value
+
+        schedule = preset.horizon_schedule
+        first = self.metric("planning_horizon").get(1)
+        horizon = (int(first) if first is not None else int(given("planning_horizon") or preset.planning_horizon
+                                                             or (schedule[0] if schedule else self.task.spec.horizon)))
+        width = given("cost_width")
+        return json.loads(json.dumps({"preset": asdict(preset), "planning_horizon": horizon,  # as the file reads (lists)
+                "cost_width": float(width) if width is not None else preset.cost_width,
+                "num_pseudo": int(given("num_pseudo") or preset.sparse_threshold),
+                "model_inputs": list(layout.model_inputs), "policy_inputs": list(layout.policy_inputs),
+                "mean_only": bool(getattr(self.learner_cls, "mean_only", False))}))
 
     @property
     def planning_horizon(self) -> int:
@@ -130,8 +155,9 @@ class SavedPilcoRun:
                                policy_noise_std=spec.measurement_noise_std if noise else None)
 
     def model_trials(self) -> list[int]:
-        """Trials with a saved GP (``trialKKK/`` folders), ascending."""
-        return self.run.trials_with_files()
+        """Trials with a saved GP (``trialKKK/model_trialKKK.pt``; a store may keep only a trial's
+        hyperparameters), ascending."""
+        return sorted(int(Path(p).stem[len("model_trial"):]) for p in self.run.trial_files("model_trial*.pt"))
 
     def policy_trials(self) -> list[int]:
         """Trials with a saved policy, ascending."""

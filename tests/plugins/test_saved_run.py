@@ -2,6 +2,7 @@
 
 from __future__ import annotations
 
+import shutil
 from pathlib import Path
 
 import numpy as np
@@ -101,6 +102,7 @@ def test_a_trials_objective_is_rebuilt_as_the_run_planned_it_and_the_gp_budget_c
         assert saved.saved_model(2)["gp"]["inputs"].shape[0] == sum(ep.steps - ep.terminated for ep in saved.episodes()[:3])
         policy = saved.policy(2)
         planned, on_task = saved.objective(2, policy), saved.objective(2, policy, task_cost=True)
+        settings, first_folder = saved.settings, saved.file("trial001/pilco_settings.json").parent
         assert planned.policy_noise is not None
         with torch.no_grad():
             J, J_task = float(planned.step_costs()[0].sum()), float(on_task.step_costs()[0].sum())
@@ -114,6 +116,12 @@ def test_a_trials_objective_is_rebuilt_as_the_run_planned_it_and_the_gp_budget_c
     own = [float(c) for c in rows["run's own GP at trial 2 (100:300, warm-started)"].split("|")[6:10]]
     assert own[0] == pytest.approx(J_task, abs=0.006)  # its closed-form J is the task-width J above (2 decimals)
     assert all(np.isfinite(own))  # the sampled J and its gap are reported
+    # a store that kept only the later trials' GPs (trial 2: its hyperparameters alone): the settings are rebuilt from
+    # the earliest GP left and the params
+    shutil.rmtree(first_folder)
+    (first_folder.parent / "trial002" / "model_trial002.pt").unlink()
+    with SavedPilcoRun(result.run_id, uri) as bare:
+        assert bare.model_trials() == [3] and bare.settings == settings
 
 
 def test_a_missing_artifact_or_a_non_pilco_run_is_named(stored):
