@@ -70,11 +70,8 @@ def build(task_name: str, task_options: dict[str, str], device: str, seed: int):
 
 
 def objective_for(learner, posterior, controller):
-    from plugins.pilco.objective import PolicyObjective
-
-    spec = learner.spec
-    return PolicyObjective(controller, posterior, learner.layout, spec.cost, spec.init_mean, spec.init_cov, learner.horizon,
-                           width=learner.cost_width, kernel=learner.kernel, device=learner.device)
+    """The learner's own planning objective (width, mean_only, planning noise, kernel, device), one CPU thread."""
+    return learner.planning_objective(controller, posterior, threads=1)
 
 
 def time_objective(objective, repeats: int) -> float:
