@@ -167,8 +167,8 @@ def check(run: SavedPilcoRun, args: argparse.Namespace, argv: list[str] | None) 
         score(label, str(seed), f"{time.process_time() - start:.0f}", model)
 
     if own is not None:
-        score(f"run's own GP at trial {own_trial} ({params.get('learner.gp_fitc_evals', '?')}:"
-              f"{params.get('used.learner.gp_hyper_subset', params.get('learner.gp_hyper_subset', '?'))}, warm-started)", "", "", own)
+        score(f"run's own GP at trial {own_trial} ({run.option_used('gp_fitc_evals') or '?'}:"
+              f"{run.option_used('gp_hyper_subset') or '?'}, warm-started)", "", "", own)
     for fitc_evals, subset, pseudo in args.configs:
         for seed in args.seeds:
             label = f"{fitc_evals}:{'all' if subset is None else subset}" + (f":{pseudo}" if pseudo is not None else "")

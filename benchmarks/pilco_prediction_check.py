@@ -76,7 +76,7 @@ def main(argv: list[str] | None = None) -> None:
         saved = run.saved_model(trial)
         posterior, policy = run.model(trial).posterior(), run.policy(trial)
         horizon = run.planning_horizon_at(trial)
-        noise = run.option_used("plan_with_noise") == "True"
+        noise = run.plans_with_noise
         lqr_policies = [linear_policy_from_gain(run.task.spec, *riding_lqr(run.task, speed)) for speed in args.lqr_speeds]
         objectives = [run.objective(trial, p, posterior, task_cost=True) for p in [policy, *lqr_policies]]
     params, task = run.params, run.task

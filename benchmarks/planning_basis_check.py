@@ -115,11 +115,8 @@ def heldout_scores(posterior: GPPosterior, x: np.ndarray, y: np.ndarray) -> tupl
     return predictive_scores(mean.numpy(), var.numpy(), y)
 
 
-def j_and_time(posterior: GPPosterior, policy, spec, horizon: int, width, mean_only: bool, noise=None) -> tuple[float, float]:
-    """``(J, CPU seconds of the faster of two J + dJ evaluations)`` of ``policy`` under ``posterior`` (``noise``: the
-    measurement noise std at the policy's input the run planned with, or ``None``)."""
-    objective = PolicyObjective(policy.controller, posterior, policy.layout, spec.cost, spec.init_mean, spec.init_cov,
-                                horizon, mean_only=mean_only, width=width, policy_noise_std=noise, threads=1)
+def j_and_time(objective: PolicyObjective) -> tuple[float, float]:
+    """``(J, CPU seconds of the faster of two J + dJ evaluations)`` of ``objective`` at its current parameters."""
     theta = objective.get_flat()
     best = float("inf")
     for _ in range(2):
@@ -159,7 +156,14 @@ def main(argv: list[str] | None = None) -> None:
         if run.task.spec.name != test.task.spec.name:
             sys.exit(f"{path}: a run on {run.task.spec.name}, the test set is from {test.task.spec.name}")
         spec, horizon = run.task.spec, run.horizon
-        width, mean_only, noise = run.learner.cost_width, run.learner.mean_only, run.learner.policy_noise_std
+        learner = run.learner
+
+        def objective_of(policy, posterior: GPPosterior) -> PolicyObjective:
+            """J of ``policy`` under ``posterior`` as the run planned: its horizon, width, mean_only, planning noise."""
+            return PolicyObjective(policy.controller, posterior, policy.layout, spec.cost, spec.init_mean, spec.init_cov,
+                                   horizon, mean_only=learner.mean_only, width=learner.cost_width,
+                                   policy_noise_std=learner.policy_noise_std, threads=1)
+
         x_test, y_test = transitions(test_episodes, run.learner.layout)
         n_test = len(x_test)
         per_step, _ = real_costs(Evaluator(run.task, n_episodes=args.episodes, seed=200_000), run.policy, horizon)
@@ -170,23 +174,21 @@ def main(argv: list[str] | None = None) -> None:
         inputs, targets = state["inputs"], state["targets"]
         basis = h.pseudo_inputs if h.pseudo_inputs is not None else inputs
         whole = model.posterior()
-        J0, t0 = j_and_time(whole, run.policy, spec, horizon, width, mean_only, noise)
+        J0, t0 = j_and_time(objective_of(run.policy, whole))
         fresh = run.learner.new_controller(torch.Generator().manual_seed(run.seed)).state_dict()
 
         def score(label: str, posterior: GPPosterior, refine_seconds: float | None) -> None:
-            J, seconds = (J0, t0) if posterior is whole else j_and_time(posterior, run.policy, spec, horizon, width, mean_only, noise)
+            J, seconds = (J0, t0) if posterior is whole else j_and_time(objective_of(run.policy, posterior))
             nlpd, smse = heldout_scores(posterior, x_test, y_test)
             found = ()
             if args.search:
                 policy = copy.deepcopy(run.policy)
                 policy.controller.load_state_dict(fresh)
-                objective = PolicyObjective(policy.controller, posterior, policy.layout, spec.cost, spec.init_mean,
-                                            spec.init_cov, horizon, mean_only=mean_only, width=width, policy_noise_std=noise,
-                                            threads=1)
+                objective = objective_of(policy, posterior)
                 start = time.process_time()
                 optimise_policy(objective, max_iterations=args.search, max_evaluations=args.search)
                 search_seconds = time.process_time() - start
-                J_whole, _ = j_and_time(whole, policy, spec, horizon, width, mean_only, noise)
+                J_whole, _ = j_and_time(objective_of(policy, whole))
                 per_step, success = real_costs(Evaluator(run.task, n_episodes=args.episodes, seed=300_000), policy, horizon)
                 found = (search_seconds, objective.value().item(), J_whole, float(per_step.sum()), success)
             rows.append((*head, label, nlpd, smse, J, seconds, refine_seconds, found))

@@ -137,6 +137,11 @@ class SavedPilcoRun:
         return self.params.get(f"used.learner.{name}", self.params.get(f"learner.{name}"))
 
     @property
+    def plans_with_noise(self) -> bool:
+        """Whether the run planned with measurement noise at the policy's input (``plan_with_noise``)."""
+        return self.option_used("plan_with_noise") == "True"
+
+    @property
     def initial_rollouts(self) -> int:
         """Random episodes before the first trial: trial K's GP is trained on the first
         ``initial_rollouts + K - 1`` episodes."""
@@ -148,11 +153,10 @@ class SavedPilcoRun:
         under ``posterior`` (default: the GP trained at that trial). ``task_cost``: the task's own cost
         width instead of the run's planning width (what a real episode's cost is measured with)."""
         spec = self.task.spec
-        noise = self.option_used("plan_with_noise") == "True"
         return PolicyObjective(policy.controller, self.model(trial).posterior() if posterior is None else posterior,
                                policy.layout, spec.cost, spec.init_mean, spec.init_cov, self.planning_horizon_at(trial),
                                mean_only=self.mean_only, width=None if task_cost else self.settings.get("cost_width"),
-                               policy_noise_std=spec.measurement_noise_std if noise else None)
+                               policy_noise_std=spec.measurement_noise_std if self.plans_with_noise else None)
 
     def model_trials(self) -> list[int]:
         """Trials with a saved GP (``trialKKK/model_trialKKK.pt``; a store may keep only a trial's
