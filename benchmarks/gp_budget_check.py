@@ -4,7 +4,7 @@ Usage::
 
     OMP_NUM_THREADS=1 .venv/bin/python benchmarks/gp_budget_check.py RUN_ID [--train-episodes 20]
         [--configs 100:400 300:400 100:800 300:800 100:300:600] [--seeds 0] [--policy-trial K] [--episodes 100]
-        [--particles 0] [--warm-start] [--tracking-uri URI] [--out results/benchmarks]
+        [--particles 0] [--lqr-speeds 0.3] [--warm-start [--warm-only]] [--tracking-uri URI] [--out results/benchmarks]
 
 Takes the recorded episodes of a PILCO run, trains the dynamics GP from scratch on the first
 ``--train-episodes`` of them once per budget ``FITC_EVALS:HYPER_SUBSET[:PSEUDO_INPUTS]`` (the learner
@@ -22,14 +22,19 @@ the later, better policies visited):
   search minimises, as the run's search at ``--policy-trial`` planned it: horizon, planning noise;
   the task's cost width) of the policy the run handed over at ``--policy-trial`` (default: its last),
   beside that policy's real cost over ``--episodes`` episodes: how far each model misjudges it;
-  ``--particles N`` adds the same model's J by Monte Carlo (model bias without moment matching's error).
+  ``--particles N`` adds the same model's J by Monte Carlo (model bias without moment matching's error);
+  ``--lqr-speeds`` (unicycle) scores the riding LQRs of :mod:`tasks.unicycle_lqr` the same way under every
+  model: whether a search through that model would rank the learned policy above one that rides.
 
 The run's own GP of the trial that trained on the same episodes (warm-started over the trials
 before, with the run's budget) is scored too. From scratch the first pseudo-input optimisation gets
 3x its budget (as in a run's first sparse trial). ``--warm-start`` adds, per budget, two refits from
 the run's GP of the trial before (what the run itself does each trial): keeping its pseudo-inputs,
-or drawing fresh ones from the data with the same budget. Writes
-``gp_budget_check_<task>_<run>_seeds<S>[_warm].md`` into ``--out``.
+or drawing fresh ones from the data with the same budget (``--seeds`` draw the random hyperparameter subset and
+pseudo-inputs), and once more with the run's own draw (:meth:`SavedPilcoRun.gp_fit_seed`, its
+``gp_refresh_pseudo``): with the run's budget that row is the run's own GP again, so the other seeds' rows
+say what the draw alone changes; ``--warm-only`` leaves out the fits from scratch. Writes
+``gp_budget_check_<task>_<run>_seeds<S>[_warm][_lqr].md`` into ``--out``.
 """
 
 from __future__ import annotations
@@ -47,11 +52,12 @@ ROOT = Path(__file__).resolve().parents[1]
 sys.path.insert(0, str(ROOT))
 
 from benchmarks.pilco_prediction_check import real_costs  # noqa: E402
+from tasks.unicycle_lqr import riding_lqr  # noqa: E402
 from benchmarks.report_file import command_line, write_report  # noqa: E402
 from harness.errors import exit_on_error  # noqa: E402
 from harness.evaluation import Evaluator  # noqa: E402
 from plugins.pilco.gp import GPModel  # noqa: E402
-from plugins.pilco.policy import transitions  # noqa: E402
+from plugins.pilco.policy import linear_policy_from_gain, transitions  # noqa: E402
 from plugins.pilco.sampling import sampled_costs  # noqa: E402
 from plugins.pilco.propagate import StateLayout  # noqa: E402
 from plugins.pilco.saved_run import SavedPilcoRun  # noqa: E402
@@ -110,8 +116,11 @@ def main(argv: list[str] | None = None) -> None:
     parser.add_argument("--episodes", type=int, default=100)
     parser.add_argument("--particles", type=int, default=0,
                         help="also the later policy's J by Monte Carlo through each model (this many trajectories; 0: off)")
+    parser.add_argument("--lqr-speeds", type=float, nargs="*", default=[],
+                        help="unicycle: also score riding LQRs (m/s) under every model, beside the learned policy")
     parser.add_argument("--warm-start", action="store_true",
                         help="also refit from the run's GP at trial K-1 (as the run did), keeping its pseudo-inputs or drawing fresh ones")
+    parser.add_argument("--warm-only", action="store_true", help="with --warm-start: no fits from scratch")
     parser.add_argument("--tracking-uri", default=None)
     parser.add_argument("--out", type=Path, default=ROOT / "results" / "benchmarks")
     args = parser.parse_args(argv)
@@ -133,6 +142,8 @@ def check(run: SavedPilcoRun, args: argparse.Namespace, argv: list[str] | None) 
     own_trial = k - run.initial_rollouts + 1  # the trial whose GP was trained on the first k episodes
     own = run.model(own_trial) if own_trial in run.model_trials() else None
     previous = run.model(own_trial - 1) if args.warm_start and own_trial - 1 in run.model_trials() else None
+    if args.warm_only and not args.warm_start:
+        sys.exit("--warm-only needs --warm-start (it leaves out the fits from scratch)")
     if args.warm_start and previous is None:
         sys.exit(f"--warm-start: run {args.run_id} saved no GP at trial {own_trial - 1} (the one before the first {k} episodes' trial)")
     params, task = run.params, run.task
@@ -140,27 +151,39 @@ def check(run: SavedPilcoRun, args: argparse.Namespace, argv: list[str] | None) 
     x_train, y_train = transitions(episodes[:k], layout)
     x_test, y_test = transitions(episodes[k:], layout)
     threshold = int(settings["preset"]["sparse_threshold"])
+    hyper_evals = int(run.option_used("gp_max_evals") or 300)  # the hyperparameters' budget (the option's default)
     num_pseudo = int(settings["num_pseudo"])
-    per_step, success = real_costs(Evaluator(task, n_episodes=args.episodes, seed=200_000), policy, horizon)
+    evaluator = Evaluator(task, n_episodes=args.episodes, seed=200_000)
+    per_step, success = real_costs(evaluator, policy, horizon)
     real = float(per_step.sum())
     print(f"{len(x_train)} training / {len(x_test)} held-out transitions; policy of trial {policy_trial}: real J {real:.2f}, "
           f"success {100 * success:.0f} %", flush=True)
+    references = []  # (speed, policy, real J, real success) of each riding LQR
+    for speed in args.lqr_speeds:
+        lqr = linear_policy_from_gain(task.spec, *riding_lqr(task, speed))
+        lqr_step, lqr_success = real_costs(evaluator, lqr, horizon)
+        references.append((speed, lqr, float(lqr_step.sum()), lqr_success))
+        print(f"riding LQR {speed:g} m/s: real J {references[-1][2]:.2f}, success {100 * lqr_success:.0f} %", flush=True)
 
     rows = []
 
     def score(label: str, seed: str, cpu: str, model: GPModel) -> None:
         """Held-out scores and the later policy's J under ``model``, as a row."""
-        objective = run.objective(policy_trial, policy, model.posterior(), task_cost=True)
+        posterior = model.posterior()
         nlpd, smse = one_step_scores(model, x_test, y_test)
-        J, J_smp = closed_form_J(objective), sampled_J(objective, args.particles)
-        rows.append((label, seed, cpu, nlpd, smse, J, J_smp))
-        print(f"{label} seed {seed}: fit {cpu} s CPU, NLPD {nlpd:.3f}, SMSE {smse:.4f}, J {J:.2f}, sampled {J_smp:.2f}", flush=True)
+        Js = []  # (closed form, sampled) of the learned policy, then of each riding LQR
+        for p in [policy, *(lqr for _, lqr, _, _ in references)]:
+            objective = run.objective(policy_trial, p, posterior, task_cost=True)
+            Js.append((closed_form_J(objective), sampled_J(objective, args.particles)))
+        rows.append((label, seed, cpu, nlpd, smse, Js))
+        print(f"{label} seed {seed}: fit {cpu} s CPU, NLPD {nlpd:.3f}, SMSE {smse:.4f}, J (closed, sampled) "
+              + ", ".join(f"{a:.2f}/{b:.2f}" for a, b in Js), flush=True)
 
     def fit_and_score(label: str, seed: int, fitc_evals: int, subset: int | None, pseudo: int | None, warm_start=None,
                       refresh: bool = False) -> None:
         """Train a GP on the training transitions, score it on the held-out ones, add a row."""
         m = num_pseudo if pseudo is None else pseudo
-        model = GPModel(sparse_threshold=threshold if pseudo is None else m, num_pseudo=m,
+        model = GPModel(sparse_threshold=threshold if pseudo is None else m, num_pseudo=m, max_evals_full=hyper_evals,
                         max_evals_fitc=fitc_evals, hyper_subset=len(x_train) if subset is None else subset, refresh_pseudo=refresh)
         start = time.process_time()
         model.fit(x_train, y_train, warm_start=warm_start, seed=seed)
@@ -172,11 +195,16 @@ def check(run: SavedPilcoRun, args: argparse.Namespace, argv: list[str] | None) 
     for fitc_evals, subset, pseudo in args.configs:
         for seed in args.seeds:
             label = f"{fitc_evals}:{'all' if subset is None else subset}" + (f":{pseudo}" if pseudo is not None else "")
-            fit_and_score(label, seed, fitc_evals, subset, pseudo)
+            if not args.warm_only:
+                fit_and_score(label, seed, fitc_evals, subset, pseudo)
             if previous is not None and pseudo is None:  # the run's previous GP as warm start, same FITC budget either way
                 for refresh, what in ((False, "its pseudo-inputs"), (True, "fresh pseudo-inputs")):
                     fit_and_score(f"{label} from the run's trial-{own_trial - 1} GP, {what}", seed, fitc_evals, subset, None,
                                   previous.hyperparameters, refresh)
+        if previous is not None and pseudo is None:  # the run's own draw: its budget gives the run's own GP back
+            refresh = run.option_used("gp_refresh_pseudo") == "True"
+            fit_and_score(f"{label} from the run's trial-{own_trial - 1} GP, {'fresh' if refresh else 'its'} pseudo-inputs, "
+                          "the run's draw", run.gp_fit_seed(own_trial), fitc_evals, subset, None, previous.hyperparameters, refresh)
 
     sampled = args.particles > 0
     lines = [
@@ -190,16 +218,20 @@ def check(run: SavedPilcoRun, args: argparse.Namespace, argv: list[str] | None) 
         f"{horizon} steps of the policy handed over at trial {policy_trial}, as that trial's search planned it but with the task's "
         f"cost width" + (f"; sampled: the same model by Monte Carlo ({args.particles} trajectories)" if sampled else "") +
         f"; its **real** cost over {args.episodes} episodes is **{real:.2f}** (success {100 * success:.0f} %). "
-        "Fit time: CPU seconds on one thread.", "",
+        "Fit time: CPU seconds on one thread."
+        + "".join(f" Riding LQR {speed:g} m/s (`tasks.unicycle_lqr`, as a PILCO linear controller): real cost {r:.2f} over the "
+                  f"same episodes (success {100 * ok:.0f} %)." for speed, _, r, ok in references), "",
         "| budget | seed | fit CPU s | held-out NLPD (nats/transition) | held-out SMSE | J of the later policy | J - real |"
-        + (" J sampled | sampled - real |" if sampled else ""),
-        "|---|---|---|---|---|---|---|" + ("---|---|" if sampled else ""),
+        + (" J sampled | sampled - real |" if sampled else "")
+        + "".join(f" LQR {speed:g}: J |" + (" sampled |" if sampled else "") for speed, *_ in references),
+        "|---|---|---|---|---|---|---|" + ("---|---|" if sampled else "") + ("---|" * (1 + sampled)) * len(references),
     ]
-    lines += [f"| {label} | {seed} | {cpu} | {nlpd:.3f} | {smse:.4f} | {J:.2f} | {J - real:+.2f} |"
-              + (f" {J_smp:.2f} | {J_smp - real:+.2f} |" if sampled else "")
-              for label, seed, cpu, nlpd, smse, J, J_smp in rows]
+    lines += [f"| {label} | {seed} | {cpu} | {nlpd:.3f} | {smse:.4f} | {Js[0][0]:.2f} | {Js[0][0] - real:+.2f} |"
+              + (f" {Js[0][1]:.2f} | {Js[0][1] - real:+.2f} |" if sampled else "")
+              + "".join(f" {J:.2f} |" + (f" {J_smp:.2f} |" if sampled else "") for J, J_smp in Js[1:])
+              for label, seed, cpu, nlpd, smse, Js in rows]
     write_report(lines, args.out / f"gp_budget_check_{params['task']}_{args.run_id[:8]}_seeds{'-'.join(map(str, args.seeds))}"
-                 f"{'_warm' if args.warm_start else ''}.md")
+                 f"{'_warm' if args.warm_start else ''}{'_lqr' if references else ''}.md")
 
 
 if __name__ == "__main__":

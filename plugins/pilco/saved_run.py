@@ -34,8 +34,9 @@ import torch
 from harness.discovery import load_learner, load_task
 from harness.datafile import LegacyFormatError, is_legacy, legacy_message
 from harness.errors import CheckpointError
+from harness.seeding import derive_seeds
 from harness.store import Store
-from harness.store.layout import trial_folder
+from harness.store.layout import SEED_TAG, trial_folder
 from harness.task import Episode
 from harness.testrun import task_options
 from plugins.pilco.gp import GPModel
@@ -146,6 +147,12 @@ class SavedPilcoRun:
         """Random episodes before the first trial: trial K's GP is trained on the first
         ``initial_rollouts + K - 1`` episodes."""
         return int(self.settings["preset"]["initial_rollouts"])
+
+    def gp_fit_seed(self, trial: int) -> int:
+        """The seed of trial ``trial``'s GP training (its random hyperparameter subset and first pseudo-inputs):
+        the learner's seed, derived from the run's (:func:`~harness.seeding.derive_seeds`), plus the trial, as
+        ``Pilco.learn`` passes it. Refitting with it on the same data and warm start reproduces the run's GP."""
+        return derive_seeds(int(self.run.tags[SEED_TAG]))["learner"] + int(trial)
 
     def objective(self, trial: int, policy, posterior: GPPosterior | None = None, task_cost: bool = False) -> PolicyObjective:
         """J of ``policy`` as trial ``trial``'s policy search computed it: that trial's planning horizon,

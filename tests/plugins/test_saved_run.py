@@ -12,7 +12,9 @@ import torch
 from harness.errors import CheckpointError, TrackingError
 from harness.runner import RunConfig, run
 from plugins.pilco.objective import PolicyObjective
+from plugins.pilco.policy import linear_policy_from_gain
 from plugins.pilco.saved_run import SavedPilcoRun
+from tasks.unicycle_lqr import riding_lqr
 
 TINY = {"num_centres": "4", "policy_max_evaluations": "8", "gp_max_evals": "20", "plots": "false", "sample_particles": "0"}
 
@@ -116,12 +118,48 @@ def test_a_trials_objective_is_rebuilt_as_the_run_planned_it_and_the_gp_budget_c
     own = [float(c) for c in rows["run's own GP at trial 2 (100:300, warm-started)"].split("|")[6:10]]
     assert own[0] == pytest.approx(J_task, abs=0.006)  # its closed-form J is the task-width J above (2 decimals)
     assert all(np.isfinite(own))  # the sampled J and its gap are reported
+    # --lqr-speeds: the riding LQR scored under every model too, its J through the own GP as the run would plan it
+    main([result.run_id, "--train-episodes", "3", "--policy-trial", "2", "--configs", "5:all", "--lqr-speeds", "0.3",
+          "--episodes", "2", "--tracking-uri", uri, "--out", str(tmp_path)])
+    text = (tmp_path / f"gp_budget_check_unicycle_{result.run_id[:8]}_seeds0_lqr.md").read_text()
+    assert "Riding LQR 0.3 m/s" in text and "LQR 0.3: J |" in text
+    with SavedPilcoRun(result.run_id, uri) as saved:
+        lqr = linear_policy_from_gain(saved.task.spec, *riding_lqr(saved.task, 0.3))
+        with torch.no_grad():
+            J_lqr = float(saved.objective(2, lqr, saved.model(2).posterior(), task_cost=True).step_costs()[0].sum())
+    rows = {line.split("|")[1].strip(): line.split("|") for line in text.splitlines() if line.startswith("| ") and "seed" not in line}
+    assert set(rows) == {"run's own GP at trial 2 (100:300, warm-started)", "5:all"}
+    assert float(rows["run's own GP at trial 2 (100:300, warm-started)"][8]) == pytest.approx(J_lqr, abs=0.006)
+    assert np.isfinite(float(rows["5:all"][8]))
     # a store that kept only the later trials' GPs (trial 2: its hyperparameters alone): the settings are rebuilt from
     # the earliest GP left and the params
     shutil.rmtree(first_folder)
     (first_folder.parent / "trial002" / "model_trial002.pt").unlink()
     with SavedPilcoRun(result.run_id, uri) as bare:
         assert bare.model_trials() == [3] and bare.settings == settings
+
+
+def test_the_gp_budget_check_refits_with_the_runs_own_draw_and_gets_the_runs_gp_back(tmp_path):
+    """A sparse GP trains its hyperparameters on a random subset: refitting from the previous trial's GP with
+    the run's own draw (``gp_fit_seed``: the learner's derived seed plus the trial) gives the run's GP back
+    exactly; another seed's draw gives another GP. ``--warm-only`` leaves out the fits from scratch."""
+    from benchmarks.gp_budget_check import main
+    from harness.seeding import derive_seeds
+
+    options = {**TINY, "sparse_threshold": "10", "num_pseudo": "6", "gp_hyper_subset": "8", "initial_rollouts": "2"}
+    uri, result = _stored_run(tmp_path, "cartpole", options, trials=4)
+    with SavedPilcoRun(result.run_id, uri) as saved:
+        assert saved.gp_fit_seed(3) == derive_seeds(0)["learner"] + 3
+        assert saved.saved_model(3)["gp"]["inputs"].shape[0] > 10  # sparse, on a subset of 8
+    main([result.run_id, "--train-episodes", "4", "--policy-trial", "3", "--configs", "100:8", "--seeds", "1", "--warm-start",
+          "--warm-only", "--episodes", "2", "--tracking-uri", uri, "--out", str(tmp_path)])
+    text = (tmp_path / f"gp_budget_check_cartpole_{result.run_id[:8]}_seeds1_warm.md").read_text()
+    rows = {line.split("|")[1].strip(): line.split("|")[4:8] for line in text.splitlines() if line.startswith("| ") and "seed" not in line}
+    assert set(rows) == {"run's own GP at trial 3 (100:8, warm-started)", "100:8 from the run's trial-2 GP, its pseudo-inputs",
+                         "100:8 from the run's trial-2 GP, fresh pseudo-inputs", "100:8 from the run's trial-2 GP, its pseudo-inputs, the run's draw"}
+    own = rows["run's own GP at trial 3 (100:8, warm-started)"]
+    assert rows["100:8 from the run's trial-2 GP, its pseudo-inputs, the run's draw"] == own  # NLPD, SMSE, J, J - real
+    assert rows["100:8 from the run's trial-2 GP, its pseudo-inputs"][0] != own[0]  # seed 1's subset: another GP
 
 
 def test_a_missing_artifact_or_a_non_pilco_run_is_named(stored):
@@ -264,3 +302,28 @@ def test_paper_cost_of_policies_scores_a_stored_policy_with_both_costs_by_their_
     assert f"| {found['paper'].mean():.2f} ({found['paper'].min():.2f}-" in out.read_text()
     with SavedPilcoRun(result.run_id, uri) as saved, pytest.raises(CheckpointError, match="has no policy of trial 7"):
         score_policy(saved, 7, None, 1, 0)
+
+
+def test_the_ensemble_search_check_averages_j_and_dj_and_scores_every_policy_under_every_gp(tmp_path):
+    """``MeanObjective`` is the mean of its members' J and dJ (each computed alone); the check refits
+    the GP per draw, searches and writes one row per policy with J under every GP."""
+    from benchmarks.ensemble_search_check import MeanObjective, main
+
+    options = {**TINY, "sparse_threshold": "10", "num_pseudo": "6", "gp_hyper_subset": "8", "initial_rollouts": "2"}
+    uri, result = _stored_run(tmp_path, "cartpole", options, trials=3)
+    with SavedPilcoRun(result.run_id, uri) as saved:
+        policy = saved.policy(2)
+        objectives = [saved.objective(trial, policy) for trial in (2, 3)]  # one controller, two GPs
+        theta = objectives[0].get_flat() + 0.01
+        alone = [objective.value_and_grad(theta) for objective in objectives]
+        J, dJ = MeanObjective(objectives).value_and_grad(theta)
+    assert J == pytest.approx((alone[0][0] + alone[1][0]) / 2, rel=1e-12)
+    np.testing.assert_allclose(dJ, (alone[0][1] + alone[1][1]) / 2, rtol=1e-12)
+    assert abs(alone[0][0] - alone[1][0]) > 1e-6 * abs(J)  # two different GPs: the mean is not one of them
+    main([result.run_id, "--trial", "3", "--draws", "1", "2", "--episodes", "2", "--tracking-uri", uri, "--out", str(tmp_path)])
+    text = (tmp_path / f"ensemble_search_check_cartpole_{result.run_id[:8]}_t3.md").read_text()
+    assert "| policy | J + dJ evaluations | J under run's own GP | J under draw 1 GP | J under draw 2 GP | real cost | real success |" in text
+    rows = [line for line in text.splitlines() if line.startswith("| ") and "J + dJ evaluations" not in line]
+    assert [r.split("|")[1].strip() for r in rows] == ["the run's trial-3 policy (searched under its own GP)",
+                                                        "searched under draw 1 alone", "searched on the mean J of draws 1, 2"]
+    assert all(np.isfinite(float(c)) for r in rows for c in r.split("|")[3:7])
