@@ -327,3 +327,24 @@ def test_the_ensemble_search_check_averages_j_and_dj_and_scores_every_policy_und
     assert [r.split("|")[1].strip() for r in rows] == ["the run's trial-3 policy (searched under its own GP)",
                                                         "searched under draw 1 alone", "searched on the mean J of draws 1, 2"]
     assert all(np.isfinite(float(c)) for r in rows for c in r.split("|")[3:7])
+
+
+def test_the_unicycle_drift_check_counts_falls_as_the_episodes_and_the_task_do(tmp_path):
+    """The real fallen fraction at a step is the share of test episodes that ended in a fall by then; the
+    model's is the share of sampled states the task calls fallen; both per step, every state entry reported."""
+    from benchmarks.unicycle_drift_check import main
+    from harness.evaluation import Evaluator
+
+    uri, result = _stored_run(tmp_path, "unicycle", {**TINY, "initial_rollouts": "2"}, trials=2)
+    main([result.run_id, "--trial", "2", "--particles", "50", "--episodes", "6", "--steps", "3", "12", "--tracking-uri", uri,
+          "--out", str(tmp_path)])
+    text = (tmp_path / f"drift_check_unicycle_{result.run_id[:8]}_t2.md").read_text()
+    with SavedPilcoRun(result.run_id, uri) as saved:
+        episodes = Evaluator(saved.task, n_episodes=6, seed=200_000)(saved.policy(2)).episodes
+        names = saved.task.spec.state_names
+    rows = {int(line.split("|")[1]): line.split("|")[2:-1] for line in text.splitlines() if line.startswith("| ") and "step" not in line}
+    assert set(rows) == {3, 12}
+    for t, cells in rows.items():
+        fell = sum(ep.terminated and len(ep.states) - 1 <= t for ep in episodes)
+        assert cells[0].strip() == f"{100 * fell / 6:.1f} %"
+        assert 0 <= float(cells[1].strip(" %")) <= 100 and len(cells) == 2 + 2 * len(names)

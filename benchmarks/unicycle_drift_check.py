@@ -1,0 +1,90 @@
+"""Where does the GP's rollout of a unicycle policy part from the real rides? State by state, step by step.
+
+Usage::
+
+    OMP_NUM_THREADS=1 python benchmarks/unicycle_drift_check.py RUN_ID --trial K [--particles 2000] [--episodes 200]
+        [--steps 10 20 40 60] [--tracking-uri URI] [--out results/benchmarks]
+
+The prediction check (``pilco_prediction_check.py``) shows *that* the model's expected cost of a unicycle policy
+falls behind the real one late in the ride. This says *where*: the policy handed over at trial ``K`` is rolled
+out through trial ``K``'s GP by sampling (``--particles`` trajectories, the run's planning noise; the same Monte
+Carlo as ``J_sampled``) and on the real task (``--episodes`` test episodes). At each of ``--steps``:
+
+* **fallen**: the fraction of real episodes that ended in a fall by that step, and the fraction of sampled
+  trajectories past the same boundary (``|theta| > pi/2`` or ``|psi_f| > pi/2``, :meth:`Unicycle.fallen`) at it;
+* per state entry, the **mean and standard deviation** over the real episodes still up and over the sampled
+  trajectories still up: the entry whose spread the model underestimates is the one it does not see drift.
+
+Writes ``drift_check_<task>_<run>_t<K>.md`` into ``--out``.
+"""
+
+from __future__ import annotations
+
+import argparse
+import sys
+from pathlib import Path
+
+import numpy as np
+import torch
+
+ROOT = Path(__file__).resolve().parents[1]
+sys.path.insert(0, str(ROOT))
+
+from benchmarks.report_file import command_line, write_report  # noqa: E402
+from harness.errors import exit_on_error  # noqa: E402
+from harness.evaluation import Evaluator  # noqa: E402
+from plugins.pilco.sampling import sample_states  # noqa: E402
+from plugins.pilco.saved_run import SavedPilcoRun  # noqa: E402
+
+
+def up_statistics(states: np.ndarray, up: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
+    """Mean and standard deviation ``(D,)`` of ``states (N, D)`` over the rows with ``up (N,)`` true (NaN if none)."""
+    if not up.any():
+        return np.full(states.shape[1], np.nan), np.full(states.shape[1], np.nan)
+    return states[up].mean(0), states[up].std(0)
+
+
+def main(argv: list[str] | None = None) -> None:
+    parser = argparse.ArgumentParser(description=__doc__.splitlines()[0])
+    parser.add_argument("run_id")
+    parser.add_argument("--trial", type=int, required=True)
+    parser.add_argument("--particles", type=int, default=2000)
+    parser.add_argument("--episodes", type=int, default=200)
+    parser.add_argument("--steps", type=int, nargs="+", default=[10, 20, 40, 60])
+    parser.add_argument("--tracking-uri", default=None)
+    parser.add_argument("--out", type=Path, default=ROOT / "results" / "benchmarks")
+    args = parser.parse_args(argv)
+    torch.set_num_threads(1)
+    with SavedPilcoRun(args.run_id, args.tracking_uri, task="unicycle") as run:
+        policy = run.policy(args.trial)
+        horizon = run.planning_horizon_at(args.trial)
+        steps = [t for t in args.steps if 1 <= t <= horizon]
+        if not steps:
+            sys.exit(f"--steps {args.steps}: none within trial {args.trial}'s planning horizon of {horizon} steps")
+        objective = run.objective(args.trial, policy, task_cost=True)
+        sampled = sample_states(objective, args.particles, seed=0).numpy()  # (H + 1, particles, D)
+        task, names = run.task, run.task.spec.state_names
+        episodes = Evaluator(task, n_episodes=args.episodes, seed=200_000)(policy).episodes
+
+    lines = [
+        f"# Drift check: {run.params['learner']} on unicycle, run `{args.run_id}`, the policy of trial {args.trial}", "",
+        f"Command: `{command_line(__file__, argv, env='OMP_NUM_THREADS=1')}`  ",
+        f"Model: trial {args.trial}'s GP, {args.particles} sampled trajectories over {horizon} steps (planning noise as the run "
+        f"planned); real: {args.episodes} test episodes (true states). Fallen: past |theta| or |psi_f| = pi/2 (real: the episode "
+        "ended in a fall by that step). Per entry: mean / standard deviation over the episodes and trajectories still up.", "",
+        "| step | fallen: real | fallen: model | " + " | ".join(f"{n}: real | model" for n in names) + " |",
+        "|---|---|---|" + "---|---|" * len(names),
+    ]
+    for t in steps:
+        real = np.array([ep.states[min(t, len(ep.states) - 1)] for ep in episodes])  # a fallen episode: its last state
+        real_up = np.array([len(ep.states) - 1 >= t and not (ep.terminated and len(ep.states) - 1 == t) for ep in episodes])
+        model_up = np.array([not task.fallen(s) for s in sampled[t]])
+        (rm, rs), (mm, ms) = up_statistics(real, real_up), up_statistics(sampled[t], model_up)
+        lines.append(f"| {t} | {100 * (1 - real_up.mean()):.1f} % | {100 * (1 - model_up.mean()):.1f} % | "
+                     + " | ".join(f"{rm[i]:+.3f} / {rs[i]:.3f} | {mm[i]:+.3f} / {ms[i]:.3f}" for i in range(len(names))) + " |")
+        print(lines[-1], flush=True)
+    write_report(lines, args.out / f"drift_check_unicycle_{args.run_id[:8]}_t{args.trial}.md")
+
+
+if __name__ == "__main__":
+    exit_on_error(main)
