@@ -13,7 +13,10 @@ Carlo as ``J_sampled``) and on the real task (``--episodes`` test episodes). At 
 * **fallen**: the fraction of real episodes that ended in a fall by that step, and the fraction of sampled
   trajectories past the same boundary (``|theta| > pi/2`` or ``|psi_f| > pi/2``, :meth:`Unicycle.fallen`) at it;
 * per state entry, the **mean and standard deviation** over the real episodes still up and over the sampled
-  trajectories still up: the entry whose spread the model underestimates is the one it does not see drift.
+  trajectories still up: the entry whose spread the model underestimates is the one it does not see drift;
+* the real **torques** between consecutive ``--steps`` (from step 0), as fractions of their bounds: mean ``|u|`` and
+  the share of steps at 95 % of the bound or more, for the episodes that fell and for those up at the end
+  (did the falls follow from a torque limit?).
 
 Writes ``drift_check_<task>_<run>_t<K>.md`` into ``--out``.
 """
@@ -83,6 +86,18 @@ def main(argv: list[str] | None = None) -> None:
         lines.append(f"| {t} | {100 * (1 - real_up.mean()):.1f} % | {100 * (1 - model_up.mean()):.1f} % | "
                      + " | ".join(f"{rm[i]:+.3f} / {rs[i]:.3f} | {mm[i]:+.3f} / {ms[i]:.3f}" for i in range(len(names))) + " |")
         print(lines[-1], flush=True)
+    fell = np.array([ep.terminated for ep in episodes])
+    bounds = np.asarray(task.spec.action_high, dtype=float)
+    lines += ["", "Real torques as fractions of their bounds (" + ", ".join(task.spec.action_names) + "), by fate: mean |u| / bound "
+              "and the share of steps at >= 95 % of it, over the steps each episode took in the window.", "",
+              "| steps | fell: mean | fell: at the bound | up at the end: mean | up at the end: at the bound |", "|---|---|---|---|---|"]
+    for lo, hi in zip([0, *steps[:-1]], steps):
+        cells = []
+        for group in (fell, ~fell):
+            u = [np.abs(ep.actions[lo:hi]) / bounds for ep, g in zip(episodes, group) if g and len(ep.actions) > lo]
+            u = np.concatenate(u) if u else np.full((1, len(bounds)), np.nan)
+            cells += [" / ".join(f"{v:.2f}" for v in u.mean(0)), " / ".join(f"{v:.2f}" for v in (u >= 0.95).mean(0))]
+        lines.append(f"| {lo}-{hi} | " + " | ".join(cells) + " |")
     write_report(lines, args.out / f"drift_check_unicycle_{args.run_id[:8]}_t{args.trial}.md")
 
 
