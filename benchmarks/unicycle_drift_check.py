@@ -16,7 +16,11 @@ Carlo as ``J_sampled``) and on the real task (``--episodes`` test episodes). At 
   trajectories still up: the entry whose spread the model underestimates is the one it does not see drift;
 * the real **torques** between consecutive ``--steps`` (from step 0), as fractions of their bounds: mean ``|u|`` and
   the share of steps at 95 % of the bound or more, for the episodes that fell and for those up at the end
-  (did the falls follow from a torque limit?).
+  (did the falls follow from a torque limit?);
+* the GP's **one-step predictions along the real rides** (trial ``K``'s GP on the test episodes' own transitions, as
+  :func:`~plugins.pilco.policy.transitions` builds its data) in the same windows, by fate: the mean over transitions
+  and state entries of the squared error over the predicted variance (1 for a calibrated model) and the SMSE
+  (squared error over the variance of the targets of all test transitions, averaged over the entries).
 
 Writes ``drift_check_<task>_<run>_t<K>.md`` into ``--out``.
 """
@@ -36,6 +40,7 @@ sys.path.insert(0, str(ROOT))
 from benchmarks.report_file import command_line, write_report  # noqa: E402
 from harness.errors import exit_on_error  # noqa: E402
 from harness.evaluation import Evaluator  # noqa: E402
+from plugins.pilco.policy import transitions  # noqa: E402
 from plugins.pilco.sampling import sample_states  # noqa: E402
 from plugins.pilco.saved_run import SavedPilcoRun  # noqa: E402
 
@@ -65,6 +70,7 @@ def main(argv: list[str] | None = None) -> None:
         if not steps:
             sys.exit(f"--steps {args.steps}: none within trial {args.trial}'s planning horizon of {horizon} steps")
         objective = run.objective(args.trial, policy, task_cost=True)
+        model = run.model(args.trial)
         sampled = sample_states(objective, args.particles, seed=0).numpy()  # (H + 1, particles, D)
         task, names = run.task, run.task.spec.state_names
         episodes = Evaluator(task, n_episodes=args.episodes, seed=200_000)(policy).episodes
@@ -97,6 +103,27 @@ def main(argv: list[str] | None = None) -> None:
             u = [np.abs(ep.actions[lo:hi]) / bounds for ep, g in zip(episodes, group) if g and len(ep.actions) > lo]
             u = np.concatenate(u) if u else np.full((1, len(bounds)), np.nan)
             cells += [" / ".join(f"{v:.2f}" for v in u.mean(0)), " / ".join(f"{v:.2f}" for v in (u >= 0.95).mean(0))]
+        lines.append(f"| {lo}-{hi} | " + " | ".join(cells) + " |")
+
+    # one-step predictions along the real rides: per episode its transitions (a fall's last one dropped), step t at row t
+    data = [(transitions([ep], policy.layout), ep.terminated) for ep in episodes if ep.steps - ep.terminated > 0]
+    with torch.no_grad():
+        predicted = [[t.numpy() for t in model.predict(torch.as_tensor(x), include_noise=True)] for (x, _), _ in data]
+    target_var = np.concatenate([y for (_, y), _ in data]).var(0)
+    lines += ["", f"Trial {args.trial}'s GP one step ahead on the real rides' transitions, by fate: mean squared error over the "
+              "predicted variance (1: calibrated) and SMSE (over the variance of all test targets), averaged over the "
+              f"{len(names)} entries.", "",
+              "| steps | fell: error / variance | fell: SMSE | up at the end: error / variance | up at the end: SMSE |", "|---|---|---|---|---|"]
+    for lo, hi in zip([0, *steps[:-1]], steps):
+        cells = []
+        for fate in (True, False):
+            z2, se = [], []
+            for ((_, y), terminated), (mean, var) in zip(data, predicted):
+                if terminated == fate and len(y) > lo:
+                    err = (y[lo:hi] - mean[lo:hi]) ** 2
+                    z2.append(err / var[lo:hi])
+                    se.append(err / target_var)
+            cells += [f"{np.concatenate(z2).mean():.2f}", f"{np.concatenate(se).mean():.3f}"] if z2 else ["–", "–"]
         lines.append(f"| {lo}-{hi} | " + " | ".join(cells) + " |")
     write_report(lines, args.out / f"drift_check_unicycle_{args.run_id[:8]}_t{args.trial}.md")
 
