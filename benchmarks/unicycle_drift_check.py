@@ -20,7 +20,11 @@ Carlo as ``J_sampled``) and on the real task (``--episodes`` test episodes). At 
 * the GP's **one-step predictions along the real rides** (trial ``K``'s GP on the test episodes' own transitions, as
   :func:`~plugins.pilco.policy.transitions` builds its data) in the same windows, by fate: the mean over transitions
   and state entries of the squared error over the predicted variance (1 for a calibrated model) and the SMSE
-  (squared error over the variance of the targets of all test transitions, averaged over the entries).
+  (squared error over the variance of the targets of all test transitions, averaged over the entries);
+* whether those one-step errors **persist**: per state entry, the correlation of the standardised errors
+  ``(y - mean) / sd`` of the same ride ``k`` steps apart (``k`` = 2 and 5; at ``k`` = 1 two consecutive targets
+  share one noisy observation, which makes them anti-correlated) over the steps before ``--persist-before``. A
+  model sampled with independent errors at every step (moment matching, particles) assumes 0.
 
 Writes ``drift_check_<task>_<run>_t<K>.md`` into ``--out``.
 """
@@ -59,6 +63,7 @@ def main(argv: list[str] | None = None) -> None:
     parser.add_argument("--particles", type=int, default=2000)
     parser.add_argument("--episodes", type=int, default=200)
     parser.add_argument("--steps", type=int, nargs="+", default=[10, 20, 40, 60])
+    parser.add_argument("--persist-before", type=int, default=40, help="the error correlations use the steps before this one")
     parser.add_argument("--tracking-uri", default=None)
     parser.add_argument("--out", type=Path, default=ROOT / "results" / "benchmarks")
     args = parser.parse_args(argv)
@@ -125,6 +130,22 @@ def main(argv: list[str] | None = None) -> None:
                     se.append(err / target_var)
             cells += [f"{np.concatenate(z2).mean():.2f}", f"{np.concatenate(se).mean():.3f}"] if z2 else ["–", "–"]
         lines.append(f"| {lo}-{hi} | " + " | ".join(cells) + " |")
+
+    lags = (2, 5)
+    lines += ["", f"Correlation of the standardised one-step errors of the same ride k steps apart, steps before {args.persist_before}, "
+              "per state entry (0 for errors independent from step to step).", "",
+              "| state entry | " + " | ".join(f"fell: k = {k} | up at the end: k = {k}" for k in lags) + " |",
+              "|---|" + "---|---|" * len(lags)]
+    z = [((y - mean) / np.sqrt(var))[:args.persist_before] for ((_, y), _), (mean, var) in zip(data, predicted)]
+    fates = [terminated for _, terminated in data]
+    for i, name in enumerate(names):
+        cells = []
+        for k in lags:
+            for fate in (True, False):
+                pairs = [(e[:-k, i], e[k:, i]) for e, f in zip(z, fates) if f == fate and len(e) > k]
+                a, b = (np.concatenate(v) for v in zip(*pairs)) if pairs else (np.zeros(0), np.zeros(0))
+                cells.append(f"{np.corrcoef(a, b)[0, 1]:+.2f}" if len(a) > 2 else "–")
+        lines.append(f"| {name} | " + " | ".join(cells) + " |")
     write_report(lines, args.out / f"drift_check_unicycle_{args.run_id[:8]}_t{args.trial}.md")
 
 

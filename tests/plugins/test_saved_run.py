@@ -343,10 +343,12 @@ def test_the_unicycle_drift_check_counts_falls_as_the_episodes_and_the_task_do(t
         episodes = Evaluator(saved.task, n_episodes=6, seed=200_000)(saved.policy(2)).episodes
         names = saved.task.spec.state_names
     rows = {int(line.split("|")[1]): line.split("|")[2:-1] for line in text.splitlines()
-            if line.startswith("| ") and "step" not in line and "-" not in line.split("|")[1]}
+            if line.startswith("| ") and line.split("|")[1].strip().isdigit()}
     assert set(rows) == {3, 12}
     torques = [line.split("|")[1].strip() for line in text.splitlines() if line.startswith("| ") and "-" in line.split("|")[1]]
     assert torques == ["0-3", "3-12"] * 2  # the real torques, then the GP's one-step errors, by fate, between consecutive steps
+    persistence = [line.split("|")[1].strip() for line in text.splitlines() if line.startswith("| ") and "[" in line.split("|")[1]]
+    assert persistence == list(names)  # the error correlations, one row per state entry
     for t, cells in rows.items():
         fell = sum(ep.terminated and len(ep.states) - 1 <= t for ep in episodes)
         assert cells[0].strip() == f"{100 * fell / 6:.1f} %"
