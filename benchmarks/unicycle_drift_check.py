@@ -12,6 +12,8 @@ Carlo as ``J_sampled``) and on the real task (``--episodes`` test episodes). At 
 
 * **fallen**: the fraction of real episodes that ended in a fall by that step, and the fraction of sampled
   trajectories past the same boundary (``|theta| > pi/2`` or ``|psi_f| > pi/2``, :meth:`Unicycle.fallen`) at it;
+  and, since the GP has no data beyond a fall, the fractions that have been past ``--tilt`` (rad) by then, a tilt
+  that its data do cover;
 * per state entry, the **mean and standard deviation** over the real episodes still up and over the sampled
   trajectories still up: the entry whose spread the model underestimates is the one it does not see drift;
 * the real **torques** between consecutive ``--steps`` (from step 0), as fractions of their bounds: mean ``|u|`` and
@@ -63,6 +65,7 @@ def main(argv: list[str] | None = None) -> None:
     parser.add_argument("--particles", type=int, default=2000)
     parser.add_argument("--episodes", type=int, default=200)
     parser.add_argument("--steps", type=int, nargs="+", default=[10, 20, 40, 60])
+    parser.add_argument("--tilt", type=float, default=0.3, help="also count rides ever past this |theta| or |psi_f| (rad)")
     parser.add_argument("--persist-before", type=int, default=40, help="the error correlations use the steps before this one")
     parser.add_argument("--tracking-uri", default=None)
     parser.add_argument("--out", type=Path, default=ROOT / "results" / "benchmarks")
@@ -86,15 +89,20 @@ def main(argv: list[str] | None = None) -> None:
         f"Model: trial {args.trial}'s GP, {args.particles} sampled trajectories over {horizon} steps (planning noise as the run "
         f"planned); real: {args.episodes} test episodes (true states). Fallen: past |theta| or |psi_f| = pi/2 (real: the episode "
         "ended in a fall by that step). Per entry: mean / standard deviation over the episodes and trajectories still up.", "",
-        "| step | fallen: real | fallen: model | " + " | ".join(f"{n}: real | model" for n in names) + " |",
-        "|---|---|---|" + "---|---|" * len(names),
+        f"| step | fallen: real | fallen: model | past {args.tilt:g} rad: real | past {args.tilt:g} rad: model | "
+        + " | ".join(f"{n}: real | model" for n in names) + " |",
+        "|---|---|---|---|---|" + "---|---|" * len(names),
     ]
+    tilt_entries = [names.index("theta [rad]"), names.index("psi_f [rad]")]
     for t in steps:
         real = np.array([ep.states[min(t, len(ep.states) - 1)] for ep in episodes])  # a fallen episode: its last state
         real_up = np.array([len(ep.states) - 1 >= t and not (ep.terminated and len(ep.states) - 1 == t) for ep in episodes])
         model_up = np.array([not task.fallen(s) for s in sampled[t]])
         (rm, rs), (mm, ms) = up_statistics(real, real_up), up_statistics(sampled[t], model_up)
+        real_tilted = np.mean([np.any(np.abs(ep.states[:t + 1, tilt_entries]) > args.tilt) for ep in episodes])
+        model_tilted = np.mean(np.any(np.abs(sampled[:t + 1, :, tilt_entries]) > args.tilt, axis=(0, 2)))
         lines.append(f"| {t} | {100 * (1 - real_up.mean()):.1f} % | {100 * (1 - model_up.mean()):.1f} % | "
+                     f"{100 * real_tilted:.1f} % | {100 * model_tilted:.1f} % | "
                      + " | ".join(f"{rm[i]:+.3f} / {rs[i]:.3f} | {mm[i]:+.3f} / {ms[i]:.3f}" for i in range(len(names))) + " |")
         print(lines[-1], flush=True)
     fell = np.array([ep.terminated for ep in episodes])

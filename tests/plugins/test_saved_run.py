@@ -352,4 +352,6 @@ def test_the_unicycle_drift_check_counts_falls_as_the_episodes_and_the_task_do(t
     for t, cells in rows.items():
         fell = sum(ep.terminated and len(ep.states) - 1 <= t for ep in episodes)
         assert cells[0].strip() == f"{100 * fell / 6:.1f} %"
-        assert 0 <= float(cells[1].strip(" %")) <= 100 and len(cells) == 2 + 2 * len(names)
+        assert 0 <= float(cells[1].strip(" %")) <= 100 and len(cells) == 4 + 2 * len(names)
+        # a ride that fell has been past the 0.3 rad tilt before: at least as many, in the real rides as in the model's
+        assert float(cells[2].strip(" %")) >= float(cells[0].strip(" %")) and float(cells[3].strip(" %")) >= float(cells[1].strip(" %"))
