@@ -42,7 +42,6 @@ from benchmarks.report_file import command_line, write_report  # noqa: E402
 from harness.errors import exit_on_error  # noqa: E402
 from harness.evaluation import Evaluator  # noqa: E402
 from harness.statistics import rate_interval  # noqa: E402
-from plugins.pilco.gp import GPModel  # noqa: E402
 from plugins.pilco.policy import PilcoPolicy, transitions  # noqa: E402
 from plugins.pilco.saved_run import SavedPilcoRun  # noqa: E402
 
@@ -65,18 +64,6 @@ class MeanObjective:
     def value_and_grad(self, theta: np.ndarray) -> tuple[float, np.ndarray]:
         values, grads = zip(*(objective.value_and_grad(theta) for objective in self.objectives))
         return float(np.mean(values)), np.mean(grads, axis=0)
-
-
-def refit(run: SavedPilcoRun, trial: int, x: np.ndarray, y: np.ndarray, seed: int) -> GPModel:
-    """Trial ``trial``'s GP as the run fitted it, its random draws seeded by ``seed``."""
-    learner_options = {name: run.option_used(name) for name in ("gp_max_evals", "gp_fitc_evals", "gp_hyper_subset", "gp_refresh_pseudo")}
-    settings = run.settings
-    model = GPModel(sparse_threshold=int(settings["preset"]["sparse_threshold"]), num_pseudo=int(settings["num_pseudo"]),
-                    max_evals_full=int(learner_options["gp_max_evals"] or 300), max_evals_fitc=int(learner_options["gp_fitc_evals"] or 100),
-                    hyper_subset=None if learner_options["gp_hyper_subset"] in (None, "None") else int(learner_options["gp_hyper_subset"]),
-                    refresh_pseudo=learner_options["gp_refresh_pseudo"] == "True")
-    model.fit(x, y, warm_start=run.model(trial - 1).hyperparameters, seed=seed)
-    return model
 
 
 def main(argv: list[str] | None = None) -> None:
@@ -110,7 +97,7 @@ def check(run: SavedPilcoRun, args: argparse.Namespace, single: list[int], argv:
     gps = {"run's own": run.model(trial)}
     for seed in args.draws:
         start = time.process_time()
-        gps[f"draw {seed}"] = refit(run, trial, x, y, seed)
+        gps[f"draw {seed}"] = run.refit_model(trial, x, y, seed)
         print(f"draw {seed}: refit in {time.process_time() - start:.0f} s CPU", flush=True)
     posteriors = {name: gp.posterior(max_basis=learner.options["planning_basis"]) for name, gp in gps.items()}
 

@@ -28,13 +28,22 @@ Carlo as ``J_sampled``) and on the real task (``--episodes`` test episodes). At 
   share one noisy observation, which makes them anti-correlated) over the steps before ``--persist-before``. A
   model sampled with independent errors at every step (moment matching, particles) assumes 0.
 
-Writes ``drift_check_<task>_<run>_t<K>.md`` into ``--out``.
+``--train-on true-states`` replaces trial ``K``'s GP by one trained again as the run trained it
+(:meth:`SavedPilcoRun.refit_model`, the run's own draw) on the same episodes' true, noise-free states instead of
+the observations the run had (``observations``: on what the run had, which gives the run's GP back): does the
+measurement noise in the GP's inputs, which flattens a regression's slopes, make the model's falls slower?
+
+``--lqr-speed S`` checks the riding LQR at ``S`` m/s (:mod:`tasks.unicycle_lqr`, as a PILCO linear controller) under
+the same GP instead of the run's policy.
+
+Writes ``drift_check_unicycle_<run>_t<K>[_<train-on>][_lqr<S>].md`` into ``--out``.
 """
 
 from __future__ import annotations
 
 import argparse
 import sys
+from dataclasses import replace
 from pathlib import Path
 
 import numpy as np
@@ -43,12 +52,14 @@ import torch
 ROOT = Path(__file__).resolve().parents[1]
 sys.path.insert(0, str(ROOT))
 
+from benchmarks.pilco_prediction_check import held_costs  # noqa: E402
 from benchmarks.report_file import command_line, write_report  # noqa: E402
 from harness.errors import exit_on_error  # noqa: E402
 from harness.evaluation import Evaluator  # noqa: E402
-from plugins.pilco.policy import transitions  # noqa: E402
+from plugins.pilco.policy import linear_policy_from_gain, transitions  # noqa: E402
 from plugins.pilco.sampling import sample_states  # noqa: E402
 from plugins.pilco.saved_run import SavedPilcoRun  # noqa: E402
+from tasks.unicycle_lqr import riding_lqr  # noqa: E402
 
 
 def up_statistics(states: np.ndarray, up: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
@@ -65,6 +76,9 @@ def main(argv: list[str] | None = None) -> None:
     parser.add_argument("--particles", type=int, default=2000)
     parser.add_argument("--episodes", type=int, default=200)
     parser.add_argument("--steps", type=int, nargs="+", default=[10, 20, 40, 60])
+    parser.add_argument("--train-on", choices=("observations", "true-states"), default=None,
+                        help="refit trial K's GP on the run's observations or on the true states (default: the run's GP as saved)")
+    parser.add_argument("--lqr-speed", type=float, default=None, help="check the riding LQR at this speed (m/s) instead of the run's policy")
     parser.add_argument("--tilt", type=float, default=0.3, help="also count rides ever past this |theta| or |psi_f| (rad)")
     parser.add_argument("--persist-before", type=int, default=40, help="the error correlations use the steps before this one")
     parser.add_argument("--tracking-uri", default=None)
@@ -73,22 +87,39 @@ def main(argv: list[str] | None = None) -> None:
     torch.set_num_threads(1)
     with SavedPilcoRun(args.run_id, args.tracking_uri, task="unicycle") as run:
         policy = run.policy(args.trial)
+        if args.lqr_speed is not None:
+            policy = linear_policy_from_gain(run.task.spec, *riding_lqr(run.task, args.lqr_speed))
         horizon = run.planning_horizon_at(args.trial)
         steps = [t for t in args.steps if 1 <= t <= horizon]
         if not steps:
             sys.exit(f"--steps {args.steps}: none within trial {args.trial}'s planning horizon of {horizon} steps")
-        objective = run.objective(args.trial, policy, task_cost=True)
         model = run.model(args.trial)
+        if args.train_on is not None:
+            data = run.episodes()[:args.trial - 1 + run.initial_rollouts]
+            if args.train_on == "true-states":
+                data = [replace(ep, observations=ep.states) for ep in data]
+            model = run.refit_model(args.trial, *transitions(data, policy.layout))
+        objective = run.objective(args.trial, policy, model.posterior(), task_cost=True)
         sampled = sample_states(objective, args.particles, seed=0).numpy()  # (H + 1, particles, D)
         task, names = run.task, run.task.spec.state_names
         episodes = Evaluator(task, n_episodes=args.episodes, seed=200_000)(policy).episodes
+        with torch.no_grad():
+            J_sampled = float(objective.cost.sample(torch.as_tensor(sampled[1:])).mean(dim=1).sum())
+            J_closed = float(objective.step_costs()[0].sum())
+        J_real = float(held_costs(episodes, horizon)[:, :task.spec.horizon].mean(axis=0).sum())  # the steps a real ride has
 
     lines = [
-        f"# Drift check: {run.params['learner']} on unicycle, run `{args.run_id}`, the policy of trial {args.trial}", "",
+        f"# Drift check: {run.params['learner']} on unicycle, run `{args.run_id}`, "
+        + (f"the riding LQR at {args.lqr_speed:g} m/s" if args.lqr_speed is not None else f"the policy of trial {args.trial}")
+        + f" under trial {args.trial}'s GP", "",
         f"Command: `{command_line(__file__, argv, env='OMP_NUM_THREADS=1')}`  ",
-        f"Model: trial {args.trial}'s GP, {args.particles} sampled trajectories over {horizon} steps (planning noise as the run "
+        f"Model: trial {args.trial}'s GP" + {None: "", "observations": ", trained again as the run trained it",
+                                              "true-states": ", trained again as the run trained it but on the true (noise-free) states "
+                                              "of the same episodes"}[args.train_on] + f", {args.particles} sampled trajectories over {horizon} steps (planning noise as the run "
         f"planned); real: {args.episodes} test episodes (true states). Fallen: past |theta| or |psi_f| = pi/2 (real: the episode "
         "ended in a fall by that step). Per entry: mean / standard deviation over the episodes and trajectories still up.", "",
+        f"Expected cost over the {horizon} steps (the task's cost): **sampled through this GP {J_sampled:.2f}**, closed form (moment "
+        f"matching) {J_closed:.2f}, **real {J_real:.2f}** (a fall holds its last cost).", "",
         f"| step | fallen: real | fallen: model | past {args.tilt:g} rad: real | past {args.tilt:g} rad: model | "
         + " | ".join(f"{n}: real | model" for n in names) + " |",
         "|---|---|---|---|---|" + "---|---|" * len(names),
@@ -154,7 +185,8 @@ def main(argv: list[str] | None = None) -> None:
                 a, b = (np.concatenate(v) for v in zip(*pairs)) if pairs else (np.zeros(0), np.zeros(0))
                 cells.append(f"{np.corrcoef(a, b)[0, 1]:+.2f}" if len(a) > 2 else "–")
         lines.append(f"| {name} | " + " | ".join(cells) + " |")
-    write_report(lines, args.out / f"drift_check_unicycle_{args.run_id[:8]}_t{args.trial}.md")
+    write_report(lines, args.out / f"drift_check_unicycle_{args.run_id[:8]}_t{args.trial}{'_' + args.train_on if args.train_on else ''}"
+                 f"{f'_lqr{args.lqr_speed:g}' if args.lqr_speed is not None else ''}.md")
 
 
 if __name__ == "__main__":

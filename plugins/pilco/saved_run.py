@@ -154,6 +154,19 @@ class SavedPilcoRun:
         ``Pilco.learn`` passes it. Refitting with it on the same data and warm start reproduces the run's GP."""
         return derive_seeds(int(self.run.tags[SEED_TAG]))["learner"] + int(trial)
 
+    def refit_model(self, trial: int, inputs, targets, seed: int | None = None) -> GPModel:
+        """Trial ``trial``'s GP trained again as the run trained it (warm start from its trial ``trial - 1`` GP, its
+        sparse settings and budgets ``gp_max_evals``, ``gp_fitc_evals``, ``gp_hyper_subset``, ``gp_refresh_pseudo``) on
+        ``inputs (n, d)``, ``targets (n, E)``; ``seed`` draws its random subsets (default: the run's own draw,
+        :meth:`gp_fit_seed`, which on the run's own data gives its GP back)."""
+        used = {name: self.option_used(name) for name in ("gp_max_evals", "gp_fitc_evals", "gp_hyper_subset", "gp_refresh_pseudo")}
+        model = GPModel(sparse_threshold=int(self.settings["preset"]["sparse_threshold"]), num_pseudo=int(self.settings["num_pseudo"]),
+                        max_evals_full=int(used["gp_max_evals"] or 300), max_evals_fitc=int(used["gp_fitc_evals"] or 100),
+                        hyper_subset=None if used["gp_hyper_subset"] in (None, "None") else int(used["gp_hyper_subset"]),
+                        refresh_pseudo=used["gp_refresh_pseudo"] == "True")
+        model.fit(inputs, targets, warm_start=self.model(trial - 1).hyperparameters, seed=self.gp_fit_seed(trial) if seed is None else seed)
+        return model
+
     def objective(self, trial: int, policy, posterior: GPPosterior | None = None, task_cost: bool = False) -> PolicyObjective:
         """J of ``policy`` as trial ``trial``'s policy search computed it: that trial's planning horizon,
         the run's cost width, ``mean_only`` and measurement noise at the policy's input (``plan_with_noise``),

@@ -355,3 +355,25 @@ def test_the_unicycle_drift_check_counts_falls_as_the_episodes_and_the_task_do(t
         assert 0 <= float(cells[1].strip(" %")) <= 100 and len(cells) == 4 + 2 * len(names)
         # a ride that fell has been past the 0.3 rad tilt before: at least as many, in the real rides as in the model's
         assert float(cells[2].strip(" %")) >= float(cells[0].strip(" %")) and float(cells[3].strip(" %")) >= float(cells[1].strip(" %"))
+
+
+def test_the_drift_check_refits_on_the_observations_to_the_runs_gp_and_on_true_states_to_another(tmp_path):
+    """``--train-on observations`` trains trial K's GP again as the run did (``refit_model``): the same report as the
+    saved GP's; ``--train-on true-states`` trains on the noise-free states of the same episodes: another GP."""
+    from benchmarks.unicycle_drift_check import main
+
+    options = {**TINY, "sparse_threshold": "10", "num_pseudo": "6", "gp_hyper_subset": "8", "initial_rollouts": "2"}
+    uri, result = _stored_run(tmp_path, "unicycle", options, trials=3)
+    common = [result.run_id, "--trial", "3", "--particles", "30", "--episodes", "3", "--steps", "4", "12", "--tracking-uri", uri,
+              "--out", str(tmp_path)]
+
+    def body(suffix: str, *extra: str) -> list[str]:
+        main(common + list(extra))
+        text = (tmp_path / f"drift_check_unicycle_{result.run_id[:8]}_t3{suffix}.md").read_text()
+        return [line for line in text.splitlines() if line.startswith("| ") or line.startswith("Expected cost")]
+
+    saved = body("")
+    assert body("_observations", "--train-on", "observations") == saved
+    assert body("_true-states", "--train-on", "true-states") != saved
+    lqr = body("_lqr0.3", "--lqr-speed", "0.3")
+    assert lqr != saved and len(lqr) == len(saved)
