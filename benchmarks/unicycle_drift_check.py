@@ -32,6 +32,8 @@ Carlo as ``J_sampled``) and on the real task (``--episodes`` test episodes). At 
 (:meth:`SavedPilcoRun.refit_model`, the run's own draw) on the same episodes' true, noise-free states instead of
 the observations the run had (``observations``: on what the run had, which gives the run's GP back): does the
 measurement noise in the GP's inputs, which flattens a regression's slopes, make the model's falls slower?
+``--train-on smoothed`` trains it on the observations smoothed along each episode (a Savitzky-Golay filter, quadratic,
+``--smooth-window`` steps; what a learner could do without the true states).
 
 ``--lqr-speed S`` checks the riding LQR at ``S`` m/s (:mod:`tasks.unicycle_lqr`, as a PILCO linear controller) under
 the same GP instead of the run's policy.
@@ -69,6 +71,16 @@ def up_statistics(states: np.ndarray, up: np.ndarray) -> tuple[np.ndarray, np.nd
     return states[up].mean(0), states[up].std(0)
 
 
+def smoothed(observations: np.ndarray, window: int) -> np.ndarray:
+    """``observations (T+1, D)`` smoothed along time: a quadratic Savitzky-Golay filter over ``window`` steps
+    (an episode shorter than the window: unchanged)."""
+    from scipy.signal import savgol_filter
+
+    if len(observations) < window:
+        return observations
+    return savgol_filter(observations, window, 2, axis=0, mode="interp")
+
+
 def main(argv: list[str] | None = None) -> None:
     parser = argparse.ArgumentParser(description=__doc__.splitlines()[0])
     parser.add_argument("run_id")
@@ -76,7 +88,8 @@ def main(argv: list[str] | None = None) -> None:
     parser.add_argument("--particles", type=int, default=2000)
     parser.add_argument("--episodes", type=int, default=200)
     parser.add_argument("--steps", type=int, nargs="+", default=[10, 20, 40, 60])
-    parser.add_argument("--train-on", choices=("observations", "true-states"), default=None,
+    parser.add_argument("--smooth-window", type=int, default=5, help="--train-on smoothed: odd window of the filter, in steps")
+    parser.add_argument("--train-on", choices=("observations", "true-states", "smoothed"), default=None,
                         help="refit trial K's GP on the run's observations or on the true states (default: the run's GP as saved)")
     parser.add_argument("--lqr-speed", type=float, default=None, help="check the riding LQR at this speed (m/s) instead of the run's policy")
     parser.add_argument("--tilt", type=float, default=0.3, help="also count rides ever past this |theta| or |psi_f| (rad)")
@@ -98,6 +111,8 @@ def main(argv: list[str] | None = None) -> None:
             data = run.episodes()[:args.trial - 1 + run.initial_rollouts]
             if args.train_on == "true-states":
                 data = [replace(ep, observations=ep.states) for ep in data]
+            elif args.train_on == "smoothed":
+                data = [replace(ep, observations=smoothed(ep.observations, args.smooth_window)) for ep in data]
             model = run.refit_model(args.trial, *transitions(data, policy.layout))
         objective = run.objective(args.trial, policy, model.posterior(), task_cost=True)
         sampled = sample_states(objective, args.particles, seed=0).numpy()  # (H + 1, particles, D)
@@ -115,7 +130,9 @@ def main(argv: list[str] | None = None) -> None:
         f"Command: `{command_line(__file__, argv, env='OMP_NUM_THREADS=1')}`  ",
         f"Model: trial {args.trial}'s GP" + {None: "", "observations": ", trained again as the run trained it",
                                               "true-states": ", trained again as the run trained it but on the true (noise-free) states "
-                                              "of the same episodes"}[args.train_on] + f", {args.particles} sampled trajectories over {horizon} steps (planning noise as the run "
+                                              "of the same episodes",
+                                              "smoothed": ", trained again as the run trained it but on the observations smoothed "
+                                              f"along each episode (Savitzky-Golay, quadratic, {args.smooth_window} steps)"}[args.train_on] + f", {args.particles} sampled trajectories over {horizon} steps (planning noise as the run "
         f"planned); real: {args.episodes} test episodes (true states). Fallen: past |theta| or |psi_f| = pi/2 (real: the episode "
         "ended in a fall by that step). Per entry: mean / standard deviation over the episodes and trajectories still up.", "",
         f"Expected cost over the {horizon} steps (the task's cost): **sampled through this GP {J_sampled:.2f}**, closed form (moment "

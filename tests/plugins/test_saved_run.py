@@ -375,5 +375,19 @@ def test_the_drift_check_refits_on_the_observations_to_the_runs_gp_and_on_true_s
     saved = body("")
     assert body("_observations", "--train-on", "observations") == saved
     assert body("_true-states", "--train-on", "true-states") != saved
+    assert body("_smoothed", "--train-on", "smoothed", "--smooth-window", "5") != saved
     lqr = body("_lqr0.3", "--lqr-speed", "0.3")
     assert lqr != saved and len(lqr) == len(saved)
+
+
+def test_the_drift_checks_smoothing_keeps_a_quadratic_and_shortens_nothing():
+    """The Savitzky-Golay filter (quadratic) leaves a quadratic trajectory as it is, takes noise down, and leaves an
+    episode shorter than its window unchanged."""
+    from benchmarks.unicycle_drift_check import smoothed
+
+    t = np.arange(20.0)[:, None]
+    quadratic = np.hstack([0.5 * t**2 - 3 * t + 1, -t**2])
+    np.testing.assert_allclose(smoothed(quadratic, 5), quadratic, atol=1e-9)
+    noise = np.random.default_rng(0).normal(size=(400, 1))
+    assert smoothed(noise, 5).std() < 0.8 * noise.std()
+    np.testing.assert_array_equal(smoothed(quadratic[:3], 5), quadratic[:3])
