@@ -32,7 +32,8 @@ Carlo as ``J_sampled``) and on the real task (``--episodes`` test episodes). At 
 (:meth:`SavedPilcoRun.refit_model`, the run's own draw) on the same episodes' true, noise-free states instead of
 the observations the run had (``observations``: on what the run had, which gives the run's GP back): does the
 measurement noise in the GP's inputs, which flattens a regression's slopes, make the model's falls slower?
-``--train-on smoothed`` trains it on the observations smoothed along each episode (a Savitzky-Golay filter, quadratic,
+``true-inputs`` and ``true-targets`` take the true states for one side of each transition and the observations for
+the other (is it the noise in the inputs or in the targets?). ``--train-on smoothed`` trains it on the observations smoothed along each episode (a Savitzky-Golay filter, quadratic,
 ``--smooth-window`` steps; what a learner could do without the true states).
 
 ``--lqr-speed S`` checks the riding LQR at ``S`` m/s (:mod:`tasks.unicycle_lqr`, as a PILCO linear controller) under
@@ -89,7 +90,7 @@ def main(argv: list[str] | None = None) -> None:
     parser.add_argument("--episodes", type=int, default=200)
     parser.add_argument("--steps", type=int, nargs="+", default=[10, 20, 40, 60])
     parser.add_argument("--smooth-window", type=int, default=5, help="--train-on smoothed: odd window of the filter, in steps")
-    parser.add_argument("--train-on", choices=("observations", "true-states", "smoothed"), default=None,
+    parser.add_argument("--train-on", choices=("observations", "true-states", "true-inputs", "true-targets", "smoothed"), default=None,
                         help="refit trial K's GP on the run's observations or on the true states (default: the run's GP as saved)")
     parser.add_argument("--lqr-speed", type=float, default=None, help="check the riding LQR at this speed (m/s) instead of the run's policy")
     parser.add_argument("--tilt", type=float, default=0.3, help="also count rides ever past this |theta| or |psi_f| (rad)")
@@ -109,11 +110,12 @@ def main(argv: list[str] | None = None) -> None:
         model = run.model(args.trial)
         if args.train_on is not None:
             data = run.episodes()[:args.trial - 1 + run.initial_rollouts]
-            if args.train_on == "true-states":
-                data = [replace(ep, observations=ep.states) for ep in data]
-            elif args.train_on == "smoothed":
+            true = [replace(ep, observations=ep.states) for ep in data]
+            if args.train_on == "smoothed":
                 data = [replace(ep, observations=smoothed(ep.observations, args.smooth_window)) for ep in data]
-            model = run.refit_model(args.trial, *transitions(data, policy.layout))
+            inputs = transitions(true if args.train_on in ("true-states", "true-inputs") else data, policy.layout)[0]
+            targets = transitions(true if args.train_on in ("true-states", "true-targets") else data, policy.layout)[1]
+            model = run.refit_model(args.trial, inputs, targets)
         objective = run.objective(args.trial, policy, model.posterior(), task_cost=True)
         sampled = sample_states(objective, args.particles, seed=0).numpy()  # (H + 1, particles, D)
         task, names = run.task, run.task.spec.state_names
@@ -131,6 +133,9 @@ def main(argv: list[str] | None = None) -> None:
         f"Model: trial {args.trial}'s GP" + {None: "", "observations": ", trained again as the run trained it",
                                               "true-states": ", trained again as the run trained it but on the true (noise-free) states "
                                               "of the same episodes",
+                                              "true-inputs": ", trained again as the run trained it but with the true states as its inputs (targets: the observed changes)",
+                                              "true-targets": ", trained again as the run trained it but with the true state changes as its targets "
+                                              "(inputs: the observations)",
                                               "smoothed": ", trained again as the run trained it but on the observations smoothed "
                                               f"along each episode (Savitzky-Golay, quadratic, {args.smooth_window} steps)"}[args.train_on] + f", {args.particles} sampled trajectories over {horizon} steps (planning noise as the run "
         f"planned); real: {args.episodes} test episodes (true states). Fallen: past |theta| or |psi_f| = pi/2 (real: the episode "

@@ -376,6 +376,8 @@ def test_the_drift_check_refits_on_the_observations_to_the_runs_gp_and_on_true_s
     assert body("_observations", "--train-on", "observations") == saved
     assert body("_true-states", "--train-on", "true-states") != saved
     assert body("_smoothed", "--train-on", "smoothed", "--smooth-window", "5") != saved
+    mixed = [body(f"_{side}", "--train-on", side) for side in ("true-inputs", "true-targets")]
+    assert saved not in mixed and mixed[0] != mixed[1]  # one side true, the other observed: two more GPs
     lqr = body("_lqr0.3", "--lqr-speed", "0.3")
     assert lqr != saved and len(lqr) == len(saved)
 
