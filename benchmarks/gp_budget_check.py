@@ -151,7 +151,6 @@ def check(run: SavedPilcoRun, args: argparse.Namespace, argv: list[str] | None) 
     x_train, y_train = transitions(episodes[:k], layout)
     x_test, y_test = transitions(episodes[k:], layout)
     threshold = int(settings["preset"]["sparse_threshold"])
-    hyper_evals = int(run.option_used("gp_max_evals") or 300)  # the hyperparameters' budget (the option's default)
     num_pseudo = int(settings["num_pseudo"])
     evaluator = Evaluator(task, n_episodes=args.episodes, seed=200_000)
     per_step, success = real_costs(evaluator, policy, horizon)
@@ -183,8 +182,8 @@ def check(run: SavedPilcoRun, args: argparse.Namespace, argv: list[str] | None) 
                       refresh: bool = False) -> None:
         """Train a GP on the training transitions, score it on the held-out ones, add a row."""
         m = num_pseudo if pseudo is None else pseudo
-        model = GPModel(sparse_threshold=threshold if pseudo is None else m, num_pseudo=m, max_evals_full=hyper_evals,
-                        max_evals_fitc=fitc_evals, hyper_subset=len(x_train) if subset is None else subset, refresh_pseudo=refresh)
+        model = run.gp_model(sparse_threshold=threshold if pseudo is None else m, num_pseudo=m, max_evals_fitc=fitc_evals,
+                             hyper_subset=len(x_train) if subset is None else subset, refresh_pseudo=refresh)
         start = time.process_time()
         model.fit(x_train, y_train, warm_start=warm_start, seed=seed)
         score(label, str(seed), f"{time.process_time() - start:.0f}", model)

@@ -60,7 +60,7 @@ from benchmarks.report_file import command_line, write_report  # noqa: E402
 from harness.errors import exit_on_error  # noqa: E402
 from harness.evaluation import Evaluator  # noqa: E402
 from plugins.pilco.policy import linear_policy_from_gain, transitions  # noqa: E402
-from plugins.pilco.sampling import sample_states  # noqa: E402
+from plugins.pilco.sampling import sample_states, states_costs  # noqa: E402
 from plugins.pilco.saved_run import SavedPilcoRun  # noqa: E402
 from tasks.unicycle_lqr import riding_lqr  # noqa: E402
 
@@ -120,8 +120,8 @@ def main(argv: list[str] | None = None) -> None:
         sampled = sample_states(objective, args.particles, seed=0).numpy()  # (H + 1, particles, D)
         task, names = run.task, run.task.spec.state_names
         episodes = Evaluator(task, n_episodes=args.episodes, seed=200_000)(policy).episodes
+        J_sampled = float(states_costs(objective, torch.as_tensor(sampled)).sum())  # the trajectories above, not new ones
         with torch.no_grad():
-            J_sampled = float(objective.cost.sample(torch.as_tensor(sampled[1:])).mean(dim=1).sum())
             J_closed = float(objective.step_costs()[0].sum())
         J_real = float(held_costs(episodes, horizon)[:, :task.spec.horizon].mean(axis=0).sum())  # the steps a real ride has
 

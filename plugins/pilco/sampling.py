@@ -61,8 +61,14 @@ def sample_states(objective: PolicyObjective, particles: int, seed: int = 0) -> 
     return torch.stack(states)
 
 
+def states_costs(objective: PolicyObjective, states: torch.Tensor) -> np.ndarray:
+    """Per-step expected cost ``(H,)`` of sampled states ``(H+1, particles, D)`` (:func:`sample_states`; index 0,
+    the initial samples, is not charged): the mean over the particles of the objective's cost at each step."""
+    with torch.no_grad():
+        return objective.cost.sample(states[1:]).mean(dim=1).cpu().numpy().copy()
+
+
 def sampled_costs(objective: PolicyObjective, particles: int, seed: int = 0) -> np.ndarray:
     """Per-step expected cost ``(H,)`` for ``x_1 .. x_H`` by :func:`sample_states` (the task's cost
     with the objective's width); the Monte Carlo error of each step is at most ``0.5 / sqrt(particles)``."""
-    with torch.no_grad():
-        return objective.cost.sample(sample_states(objective, particles, seed)[1:]).mean(dim=1).cpu().numpy().copy()
+    return states_costs(objective, sample_states(objective, particles, seed))

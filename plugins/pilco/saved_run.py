@@ -154,16 +154,23 @@ class SavedPilcoRun:
         ``Pilco.learn`` passes it. Refitting with it on the same data and warm start reproduces the run's GP."""
         return derive_seeds(int(self.run.tags[SEED_TAG]))["learner"] + int(trial)
 
+    def gp_model(self, **overrides: Any) -> GPModel:
+        """An untrained :class:`GPModel` with the run's GP settings: its sparse threshold and pseudo-input count, and
+        the options ``gp_max_evals``, ``gp_fitc_evals``, ``gp_hyper_subset``, ``gp_refresh_pseudo`` as the run used
+        them (the learner's defaults where it logged none); ``overrides`` (``GPModel``'s keyword arguments) replace any."""
+        options = self.learner_cls.option_set()
+        given = {name: self.option_used(name) for name in ("gp_max_evals", "gp_fitc_evals", "gp_hyper_subset", "gp_refresh_pseudo")}
+        o = options.resolve({name: v for name, v in given.items() if name in options and v not in (None, "None")})
+        settings = {"sparse_threshold": int(self.settings["preset"]["sparse_threshold"]), "num_pseudo": int(self.settings["num_pseudo"]),
+                    "max_evals_full": o["gp_max_evals"], "max_evals_fitc": o["gp_fitc_evals"], "hyper_subset": o["gp_hyper_subset"],
+                    "refresh_pseudo": o["gp_refresh_pseudo"]}
+        return GPModel(**{**settings, **overrides})
+
     def refit_model(self, trial: int, inputs, targets, seed: int | None = None) -> GPModel:
-        """Trial ``trial``'s GP trained again as the run trained it (warm start from its trial ``trial - 1`` GP, its
-        sparse settings and budgets ``gp_max_evals``, ``gp_fitc_evals``, ``gp_hyper_subset``, ``gp_refresh_pseudo``) on
-        ``inputs (n, d)``, ``targets (n, E)``; ``seed`` draws its random subsets (default: the run's own draw,
-        :meth:`gp_fit_seed`, which on the run's own data gives its GP back)."""
-        used = {name: self.option_used(name) for name in ("gp_max_evals", "gp_fitc_evals", "gp_hyper_subset", "gp_refresh_pseudo")}
-        model = GPModel(sparse_threshold=int(self.settings["preset"]["sparse_threshold"]), num_pseudo=int(self.settings["num_pseudo"]),
-                        max_evals_full=int(used["gp_max_evals"] or 300), max_evals_fitc=int(used["gp_fitc_evals"] or 100),
-                        hyper_subset=None if used["gp_hyper_subset"] in (None, "None") else int(used["gp_hyper_subset"]),
-                        refresh_pseudo=used["gp_refresh_pseudo"] == "True")
+        """Trial ``trial``'s GP trained again as the run trained it (:meth:`gp_model`, warm start from its trial
+        ``trial - 1`` GP) on ``inputs (n, d)``, ``targets (n, E)``; ``seed`` draws its random subsets (default: the
+        run's own draw, :meth:`gp_fit_seed`, which on the run's own data gives its GP back)."""
+        model = self.gp_model()
         model.fit(inputs, targets, warm_start=self.model(trial - 1).hyperparameters, seed=self.gp_fit_seed(trial) if seed is None else seed)
         return model
 
