@@ -145,24 +145,34 @@ def _mark_crashed(store: Store, job: CellJob, error: str) -> str:
 
 
 def _mark_lost(store: Store, job: CellJob, error: str) -> str | None:
-    """The child a dead worker left RUNNING, marked KILLED (resumable) with the error; ``None`` if there is none."""
-    run_id = _running_child(store, job)
-    if run_id is not None:
-        store.set_tags(run_id, {layout.ERROR_TAG: error, layout.RESUMABLE_TAG: "true",
+    """The run a lost worker left unfinished (RUNNING, or KILLED by the worker itself as it went
+    down), marked KILLED (resumable) with the error; ``None`` if there is none."""
+    run = _newest_child(store, job, ("RUNNING", "KILLED"))
+    if run is None:
+        return None
+    store.set_tags(run.run_id, {layout.ERROR_TAG: error, layout.RESUMABLE_TAG: "true",
                                 layout.NOTE_TAG: f"**Stopped before its limit**: {error}. **Resumable**: the same sweep command continues it."})
-        store.set_status(run_id, "KILLED")
-    return run_id
+    store.set_status(run.run_id, "KILLED")
+    return run.run_id
 
 
-def _retry_lost(store: Store, job: CellJob, error: str, grace: float = 0.0) -> tuple[CellJob, CellRetry]:
-    """The job that runs a cell whose worker was lost again, resuming the run the worker left (if any).
+def _retry_lost(store: Store, job: CellJob, error: str, grace: float = 0.0) -> tuple[CellJob, CellRetry] | CellOutcome:
+    """The job that runs a cell whose worker was lost again, resuming the run the worker left (if any);
+    or, where that worker finished the cell's run before the loss came to light, the cell's outcome.
 
-    The lost worker may live on (a Ray node cut off, not dead): its lease is revoked first, so it
-    writes nothing more, and after ``grace`` seconds (a write it began before lands) the run it
-    left, even one it created just before, is the one resumed."""
+    The lost worker may live on (a Ray node cut off, not dead; a raylet killed before its workers,
+    which run in process groups of their own): its lease is revoked first, so it writes nothing more,
+    and after ``grace`` seconds (a write it began before lands) the run it left, even one it created
+    just before, is the one resumed. A worker that lived on long enough may have marked its run KILLED
+    itself (resumed like a RUNNING one) or finished it before the driver heard of the loss (node
+    deaths are noticed in seconds, a short trial ends sooner): that run is the cell's outcome, and
+    nothing runs again."""
     revoke(store, job.parent_run_id, job.cell)
     if grace > 0:
         time.sleep(grace)
+    left = _newest_child(store, job)
+    if left is not None and left.status == "FINISHED":
+        return _finished_outcome(left, job)
     run_id = _mark_lost(store, job, error)
     node, trials = None, 0
     if run_id is not None:
@@ -171,12 +181,28 @@ def _retry_lost(store: Store, job: CellJob, error: str, grace: float = 0.0) -> t
     return replace(job, resume_run_id=run_id or job.resume_run_id), CellRetry(job.cell, error, run_id, node, trials)
 
 
+def _finished_outcome(run: RunReader, job: CellJob) -> CellOutcome:
+    """The ``finished`` outcome of a cell whose run a lost worker finished, read back from the store."""
+    return CellOutcome(job.cell, "finished", run.run_id, solved=run.solved, interaction_time_to_success=run.time_to_success,
+                       interaction_seconds=run.reached(layout.INTERACTION_SECONDS), wall_seconds=run.reached(layout.WALL_SECONDS),
+                       stop_reason=run.tags.get(layout.STOP_REASON_TAG, ""), resumed=job.resume_run_id is not None)
+
+
+def _newest_child(store: Store, job: CellJob, statuses: tuple[str, ...] = ("RUNNING", "KILLED", "FINISHED")) -> RunReader | None:
+    """The newest child run of ``job``'s cell with one of ``statuses``, if any. A cell's children are
+    its runs of earlier invocations (FINISHED ones make a cell skipped, so it has none of those) and
+    of this one, so the newest unfinished one is the run a resumed cell must continue."""
+    cell = job.cell
+    found = store.children(job.parent_run_id, job.experiment_id, (
+        f"tags.learner = '{cell.learner}' AND tags.task = '{cell.task}' AND tags.seed = '{cell.seed}'"))
+    found = [r for r in found if r.status in statuses]
+    return max(found, key=lambda r: r.start_time) if found else None
+
+
 def _running_child(store: Store, job: CellJob) -> str | None:
     """The newest child run of ``job``'s cell still marked RUNNING, if any."""
-    cell = job.cell
-    running = store.children(job.parent_run_id, job.experiment_id, (
-        f"tags.learner = '{cell.learner}' AND tags.task = '{cell.task}' AND tags.seed = '{cell.seed}' AND attributes.status = 'RUNNING'"))
-    return max(running, key=lambda r: r.start_time).run_id if running else None
+    run = _newest_child(store, job, ("RUNNING",))
+    return None if run is None else run.run_id
 
 
 def run_sweep(
@@ -294,16 +320,22 @@ def _drive(pool: pools.Pool, jobs: deque, workers: int, result: SweepResult, sto
                     outcome = pool.result(handle)
                 except Exception as exc:  # the worker process itself died (crash, out of memory, killed, its node lost)
                     cause = (str(exc) if isinstance(exc, pools.WorkerProcessDied) else f"{type(exc).__name__}: {exc}").splitlines()[0]
+                    retried_as = None
                     if pool.lost(exc) and retried.get(job.cell, 0) < MAX_CELL_RETRIES and not draining:
+                        retried_as = _retry_lost(store, job, f"worker process died ({cause[:300]})", pool.fence_grace)
+                    if isinstance(retried_as, tuple):
+                        again, retry = retried_as
                         retried[job.cell] = retried.get(job.cell, 0) + 1
-                        again, retry = _retry_lost(store, job, f"worker process died ({cause[:300]})", pool.fence_grace)
                         result.retries.append(retry)
                         progress.cell_retried(retry)
                         jobs.appendleft(again)
                         continue
-                    tries = f" (ran {retried[job.cell] + 1} times)" if job.cell in retried else ""
-                    error = f"worker process died ({cause}){tries}; re-run the sweep to retry"
-                    outcome = CellOutcome(job.cell, "failed", _mark_crashed(store, job, error), error=error)
+                    if isinstance(retried_as, CellOutcome):  # the lost worker had finished the cell's run
+                        outcome = retried_as
+                    else:
+                        tries = f" (ran {retried[job.cell] + 1} times)" if job.cell in retried else ""
+                        error = f"worker process died ({cause}){tries}; re-run the sweep to retry"
+                        outcome = CellOutcome(job.cell, "failed", _mark_crashed(store, job, error), error=error)
                 if outcome.status == "failed" and outcome.run_id is None:
                     outcome.run_id = _record_failed_child(store, job, outcome.error)
                 durations.append(time.perf_counter() - t0)

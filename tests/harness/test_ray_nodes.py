@@ -1,12 +1,12 @@
 """A Ray node dies mid-sweep: its cell runs again on the other node and resumes its run from the
 last checkpoint stored on the tracking server (no shared file system), and the sweep's results are
 those of an uninterrupted local sweep, down to `harness report`'s tables (but wall times and run ids).
-The killed node's worker may live on for a few trials (SIGKILL to the node's process group leaves it
-running until it notices its raylet is gone); its lease keeps it from writing once the cell is resumed.
+A worker that lives on after its node is lost (a node cut off) is the lease tests' case
+(`tests/harness/test_sweep_lease.py`): here the whole node dies, its workers with it.
 
 A head (no CPUs) and two one-CPU worker nodes, each with its own temp folder and working folder,
 run PILCO cells against `harness store serve`; once a cell has a checkpoint in the store, its node
-is killed (SIGKILL to its raylet and workers). Skipped (visibly) without Ray's ``ray`` command or
+is killed (SIGKILL to its daemons and to its workers, which run in process groups of their own). Skipped (visibly) without Ray's ``ray`` command or
 PostgreSQL's binaries. Every process started is killed whatever the test's end.
 """
 
@@ -70,10 +70,35 @@ class RayNode:
         return any(node_id in p.name for p in (self.temp_dir / "session_latest").iterdir())
 
     def kill(self) -> None:
-        try:
-            os.killpg(self.proc.pid, signal.SIGKILL)
-        except ProcessLookupError:
-            pass
+        """SIGKILL to the node's daemons (its process group) and to the workers they started: Ray's
+        workers run in process groups of their own, and one left alive goes on with its cell until it
+        notices its raylet is gone, which can be after the cell's last trial (the driver then finds
+        the cell's run finished, :func:`harness.sweep.driver._retry_lost`, and nothing is resumed)."""
+        for pid in self._processes():
+            try:
+                os.kill(pid, signal.SIGKILL)
+            except ProcessLookupError:
+                pass
+
+    def _processes(self) -> list[int]:
+        """The node's processes: those in its session (``ray start`` began one; the workers' own process
+        groups stay in it) or its process group and, transitively, their children."""
+        parents: dict[int, int] = {}
+        groups: dict[int, tuple[int, int]] = {}
+        for entry in Path("/proc").iterdir():
+            if not entry.name.isdigit():
+                continue
+            try:
+                fields = (entry / "stat").read_text().rsplit(")", 1)[1].split()
+            except OSError:
+                continue
+            parents[int(entry.name)], groups[int(entry.name)] = int(fields[1]), (int(fields[2]), int(fields[3]))
+        found = {pid for pid, (group, session) in groups.items() if self.proc.pid in (group, session)}
+        while True:
+            more = {pid for pid, parent in parents.items() if parent in found} - found
+            if not more:
+                return sorted(found)
+            found |= more
 
     def remove(self) -> None:
         self.kill()

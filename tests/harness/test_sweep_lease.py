@@ -28,38 +28,30 @@ class NodeLost(RuntimeError):
     pass
 
 
-class CutOffPool:
-    """The first submission runs in a thread that the pool then reports lost (its node "died"
-    once the run has stored two trials); later submissions run inline. The cut-off thread lives on."""
+class LosingPool:
+    """A pool whose first submission's handle is ``"lost"``: :meth:`result` reports its worker lost;
+    later submissions run inline. Subclasses define ``first(job)``: what the first submission does."""
 
     workers = 1
-    fence_grace = 0.2
+    fence_grace = 0.0
 
     def __init__(self) -> None:
         self.submitted: list[CellJob] = []
-        self.cut_off: dict = {}
 
     def submit(self, job):
         self.submitted.append(job)
         if len(self.submitted) == 1:
-            def body():
-                self.cut_off["outcome"] = run_cell(job)
-
-            self.cut_off["thread"] = threading.Thread(target=body, daemon=True)
-            self.cut_off["thread"].start()
-            return "cut-off"
+            self.first(job)
+            return "lost"
         future = Future()
         future.set_result(run_cell(job))
         return future
 
     def wait(self, handles, timeout):
-        if "cut-off" in handles:
-            gated = sys.modules["sweep_test_plugins"].Gated
-            assert gated.WAITING.wait(120), "the first worker never reached its third trial"
         return list(handles)
 
     def result(self, handle):
-        if handle == "cut-off":
+        if handle == "lost":
             raise NodeLost("its node died")
         return handle.result()
 
@@ -73,10 +65,47 @@ class CutOffPool:
         pass
 
 
-def test_a_lost_worker_that_lives_on_writes_nothing_and_its_cell_resumes_once(plugins, mlflow_uri, monkeypatch):
-    pool = CutOffPool()
+class CutOffPool(LosingPool):
+    """The first submission runs in a thread that the pool then reports lost (its node "died"
+    once the run has stored two trials); later submissions run inline. The cut-off thread lives on.
+    ``left_as="KILLED"``: before the loss is reported, the run is marked KILLED, as a worker does that
+    takes its raylet's end for an interrupt."""
+
+    fence_grace = 0.2
+
+    def __init__(self, left_as: str = "RUNNING") -> None:
+        super().__init__()
+        self.cut_off: dict = {}
+        self.left_as = left_as
+
+    def first(self, job: CellJob) -> None:
+        def body():
+            self.cut_off["outcome"] = run_cell(job)
+
+        self.cut_off["thread"] = threading.Thread(target=body, daemon=True)
+        self.cut_off["thread"].start()
+
+    def wait(self, handles, timeout):
+        if "lost" in handles:
+            gated = sys.modules["sweep_test_plugins"].Gated
+            assert gated.WAITING.wait(120), "the first worker never reached its third trial"
+            if self.left_as != "RUNNING":
+                job = self.submitted[0]
+                store = Store(job.tracking_uri)
+                (run,) = store.children(job.parent_run_id, job.experiment_id)
+                store.set_status(run.run_id, self.left_as)
+        return list(handles)
+
+
+@pytest.mark.parametrize("left_as, seed", [("RUNNING", 5), ("KILLED", 6)])
+def test_a_lost_worker_that_lives_on_writes_nothing_and_its_cell_resumes_once(plugins, mlflow_uri, monkeypatch, left_as, seed):
+    gated = sys.modules.get("sweep_test_plugins")
+    if gated is not None:  # a fresh gate for each case (the store is the session's: a seed of its own each)
+        gated.Gated.WAITING.clear()
+        gated.Gated.GATE.clear()
+    pool = CutOffPool(left_as)
     monkeypatch.setattr(pools, "make_pool", lambda *args: pool)
-    spec = SweepSpec(("sweep-gated",), ("sweep-toy",), (5,), max_trials=TRIALS, eval_episodes=1)
+    spec = SweepSpec(("sweep-gated",), ("sweep-toy",), (seed,), max_trials=TRIALS, eval_episodes=1)
     try:
         result = run_sweep(spec, mlflow_uri)
     finally:
@@ -92,7 +121,7 @@ def test_a_lost_worker_that_lives_on_writes_nothing_and_its_cell_resumes_once(pl
     assert stale.status == "superseded" and stale.run_id == outcome.run_id
     assert "not allowed to" in stale.error and "gave this cell to another worker" in stale.error
 
-    (run,) = children_by_cell(mlflow_uri, result)[("sweep-gated", 5)]
+    (run,) = children_by_cell(mlflow_uri, result)[("sweep-gated", seed)]
     assert run.status == "FINISHED" and run.tags[layout.STOP_REASON_TAG] == "max trials"
     assert "git_sha.resumed_at_trial_3" in run.tags
     steps = [m.step for m in run.store.client.get_metric_history(run.run_id, layout.INTERACTION_SECONDS)]
@@ -102,7 +131,32 @@ def test_a_lost_worker_that_lives_on_writes_nothing_and_its_cell_resumes_once(pl
     first, second = (job.lease for job in pool.submitted)
     assert first and second and first != second
     parent = Store(mlflow_uri).run(next(iter(result.parents.values()))[1])
-    assert parent.tags[lease_tag(Cell("sweep-gated", "sweep-toy", 5))] == second
+    assert parent.tags[lease_tag(Cell("sweep-gated", "sweep-toy", seed))] == second
+
+
+class FinishedThenLostPool(LosingPool):
+    """The first submission runs to its end inline, and then the pool reports its worker lost (a
+    worker that lived on after its node was killed, and finished its run before the driver heard
+    of the node's death)."""
+
+    def first(self, job: CellJob) -> None:
+        assert run_cell(job).status == "finished"
+
+
+def test_a_cell_whose_lost_worker_had_finished_its_run_is_finished_not_run_again(plugins, mlflow_uri, monkeypatch):
+    pool = FinishedThenLostPool()
+    monkeypatch.setattr(pools, "make_pool", lambda *args: pool)
+    spec = SweepSpec(("sweep-steps",), ("sweep-toy",), (3,), max_trials=2, eval_episodes=1)
+    result = run_sweep(spec, mlflow_uri)
+    assert len(pool.submitted) == 1 and result.retries == []
+    (outcome,) = result.outcomes
+    (run,) = children_by_cell(mlflow_uri, result)[("sweep-steps", 3)]
+    assert run.status == "FINISHED" and outcome.run_id == run.run_id
+    # seed 3 of sweep-steps solves after 8 s (tests.harness.sweep_site.EXPECTED_STEPS), read back from the run
+    assert (outcome.status, outcome.solved, outcome.interaction_time_to_success, outcome.interaction_seconds) == ("finished", True, 8.0, 8.0)
+    assert outcome.stop_reason == run.tags[layout.STOP_REASON_TAG] and outcome.wall_seconds > 0
+    parent = Store(mlflow_uri).run(next(iter(result.parents.values()))[1])
+    assert parent.status == "FINISHED" and parent.tags["harness.cells_retried"] == "0"
 
 
 def test_a_worker_whose_lease_was_revoked_before_it_started_creates_no_run(plugins, mlflow_uri):
