@@ -36,6 +36,13 @@ measurement noise in the GP's inputs, which flattens a regression's slopes, make
 the other (is it the noise in the inputs or in the targets?). ``--train-on smoothed`` trains it on the observations smoothed along each episode (a Savitzky-Golay filter, quadratic,
 ``--smooth-window`` steps; what a learner could do without the true states).
 
+``--train-on gp-smoothed`` trains it on state estimates a learner can make: each episode smoothed through the current GP
+(starting from trial ``K``'s, trained on the observations), the GP trained again on the estimates (as the run trained it),
+``--smooth-rounds`` times (:func:`plugins.pilco.smoothing.smooth_and_refit`, the learner's ``gp_data=smoothed``; the
+smoother's model-error allowance ``--process-std`` times the measurement noise std); the file says how far the estimates
+are from the true states, against the observations. Its one-step table, like a true-state file's, scores a GP trained on
+noise-free targets against noisy ones: the errors over the variance are not a calibration there.
+
 ``--lqr-speed S`` checks the riding LQR at ``S`` m/s (:mod:`tasks.unicycle_lqr`, as a PILCO linear controller) under
 the same GP instead of the run's policy.
 
@@ -62,6 +69,7 @@ from harness.evaluation import Evaluator  # noqa: E402
 from plugins.pilco.policy import linear_policy_from_gain, transitions  # noqa: E402
 from plugins.pilco.sampling import sample_states, states_costs  # noqa: E402
 from plugins.pilco.saved_run import SavedPilcoRun  # noqa: E402
+from plugins.pilco.smoothing import smooth_and_refit  # noqa: E402
 from tasks.unicycle_lqr import riding_lqr  # noqa: E402
 
 
@@ -90,7 +98,12 @@ def main(argv: list[str] | None = None) -> None:
     parser.add_argument("--episodes", type=int, default=200)
     parser.add_argument("--steps", type=int, nargs="+", default=[10, 20, 40, 60])
     parser.add_argument("--smooth-window", type=int, default=5, help="--train-on smoothed: odd window of the filter, in steps")
-    parser.add_argument("--train-on", choices=("observations", "true-states", "true-inputs", "true-targets", "smoothed"), default=None,
+    parser.add_argument("--smooth-rounds", type=int, default=2, help="--train-on gp-smoothed: rounds of smoothing and refitting")
+    parser.add_argument("--process-std", type=float, nargs="+", default=[0.0],
+                        help="--train-on gp-smoothed: the smoother's model-error allowance per step, as a multiple of the "
+                        "measurement noise std (one value, or one per state entry)")
+    parser.add_argument("--train-on", choices=("observations", "true-states", "true-inputs", "true-targets", "smoothed", "gp-smoothed"),
+                        default=None,
                         help="refit trial K's GP on the run's observations or on the true states (default: the run's GP as saved)")
     parser.add_argument("--lqr-speed", type=float, default=None, help="check the riding LQR at this speed (m/s) instead of the run's policy")
     parser.add_argument("--tilt", type=float, default=0.3, help="also count rides ever past this |theta| or |psi_f| (rad)")
@@ -108,14 +121,28 @@ def main(argv: list[str] | None = None) -> None:
         if not steps:
             sys.exit(f"--steps {args.steps}: none within trial {args.trial}'s planning horizon of {horizon} steps")
         model = run.model(args.trial)
+        smoothing_lines: list[str] = []
         if args.train_on is not None:
             data = run.episodes()[:args.trial - 1 + run.initial_rollouts]
             true = [replace(ep, observations=ep.states) for ep in data]
             if args.train_on == "smoothed":
                 data = [replace(ep, observations=smoothed(ep.observations, args.smooth_window)) for ep in data]
-            inputs = transitions(true if args.train_on in ("true-states", "true-inputs") else data, policy.layout)[0]
-            targets = transitions(true if args.train_on in ("true-states", "true-targets") else data, policy.layout)[1]
-            model = run.refit_model(args.trial, inputs, targets)
+            if args.train_on == "gp-smoothed":
+                noise = run.task.spec.measurement_noise_std
+                model, rounds = smooth_and_refit(model, lambda x, y: run.refit_model(args.trial, x, y), policy.layout, data, noise,
+                                                 args.smooth_rounds, (np.asarray(args.process_std) * noise) ** 2)
+                truth = np.concatenate([ep.observations for ep in true])
+                observed = np.sqrt(((np.concatenate([ep.observations for ep in data]) - truth) ** 2).mean(0))
+                for k, r in enumerate(rounds, 1):
+                    estimated = np.sqrt(((np.concatenate([ep.observations for ep in r.episodes]) - truth) ** 2).mean(0))
+                    smoothing_lines.append(f"Smoothing round {k}: rms error of the estimates over that of the observations, per state "
+                                           f"entry: {' '.join(f'{v:.2f}' for v in estimated / observed)} (all entries: "
+                                           f"{np.sqrt((estimated ** 2).sum() / (observed ** 2).sum()):.3f}).")
+                    print(smoothing_lines[-1], flush=True)
+            else:
+                inputs = transitions(true if args.train_on in ("true-states", "true-inputs") else data, policy.layout)[0]
+                targets = transitions(true if args.train_on in ("true-states", "true-targets") else data, policy.layout)[1]
+                model = run.refit_model(args.trial, inputs, targets)
         objective = run.objective(args.trial, policy, model.posterior(), task_cost=True)
         sampled = sample_states(objective, args.particles, seed=0).numpy()  # (H + 1, particles, D)
         task, names = run.task, run.task.spec.state_names
@@ -137,9 +164,13 @@ def main(argv: list[str] | None = None) -> None:
                                               "true-targets": ", trained again as the run trained it but with the true state changes as its targets "
                                               "(inputs: the observations)",
                                               "smoothed": ", trained again as the run trained it but on the observations smoothed "
-                                              f"along each episode (Savitzky-Golay, quadratic, {args.smooth_window} steps)"}[args.train_on] + f", {args.particles} sampled trajectories over {horizon} steps (planning noise as the run "
+                                              f"along each episode (Savitzky-Golay, quadratic, {args.smooth_window} steps)",
+                                              "gp-smoothed": f", trained again as the run trained it on state estimates: {args.smooth_rounds} rounds of "
+                                              "smoothing each episode through the current GP (plugins.pilco.smoothing, model-error allowance "
+                                              f"{args.process_std} x the measurement noise std) and refitting"}[args.train_on] + f", {args.particles} sampled trajectories over {horizon} steps (planning noise as the run "
         f"planned); real: {args.episodes} test episodes (true states). Fallen: past |theta| or |psi_f| = pi/2 (real: the episode "
         "ended in a fall by that step). Per entry: mean / standard deviation over the episodes and trajectories still up.", "",
+        *(line for text in smoothing_lines for line in (text, "")),
         f"Expected cost over the {horizon} steps (the task's cost): **sampled through this GP {J_sampled:.2f}**, closed form (moment "
         f"matching) {J_closed:.2f}, **real {J_real:.2f}** (a fall holds its last cost).", "",
         f"| step | fallen: real | fallen: model | past {args.tilt:g} rad: real | past {args.tilt:g} rad: model | "

@@ -93,6 +93,45 @@ def test_gp_training_budgets_reach_the_dynamics_model(monkeypatch):
     assert (default.options["gp_fitc_evals"], default.options["gp_hyper_subset"], default.options["gp_refresh_pseudo"]) == (100, None, False)
 
 
+def test_gp_data_smoothed_trains_the_gp_again_on_the_smoothed_episodes(monkeypatch):
+    """gp_data=smoothed: after the fit on the observations, smooth_rounds more fits, each on transitions of
+    episodes smoothed through the GP (not the observations: they move by about the noise), logged per trial;
+    the GP planned with is the last one. The default trains on the observations only."""
+    import plugins.pilco.gp as gp_module
+    from plugins.pilco.gp import GPModel
+
+    fits = []
+
+    class Recording(GPModel):
+        def fit(self, inputs, targets, **kwargs):
+            fits.append(np.array(inputs, dtype=float))
+            return super().fit(inputs, targets, **kwargs)
+
+    monkeypatch.setattr(gp_module, "GPModel", Recording)
+    trackers = {}
+    for label, extra in (("default", {}), ("smoothed", {"gp_data": "smoothed", "smooth_rounds": "2"})):
+        fits.clear()
+        trackers[label] = MemoryTracker()
+        run(RunConfig("pilco", "cartpole", seed=0, learner_options={**TINY, "plots": "false", "sample_particles": "0", **extra},
+                      task_options={"horizon": 15}, max_trials=2, eval_episodes=1), tracker=trackers[label])
+        trackers[label].fits = list(fits)
+    assert len(trackers["default"].fits) == 2 and "smoothing_obs_rms" not in trackers["default"].metrics
+    smoothed = trackers["smoothed"].fits
+    assert len(smoothed) == 2 * 3  # per trial: observations, then two rounds
+    first, rounds = smoothed[0], smoothed[1:3]
+    assert np.array_equal(first, trackers["default"].fits[0])  # the same observations as the default's first fit
+    for x in rounds:
+        assert x.shape == first.shape and 0 < np.abs(x - first).max() < 0.2  # states moved, by about the noise (0.01)
+    metrics = trackers["smoothed"].metrics
+    assert set(dict(metrics["smoothing_obs_rms"])) == {1, 2} and all(0 < v < 5 for v in dict(metrics["smoothing_obs_rms"]).values())
+    assert dict(metrics["J_after"]) != dict(trackers["default"].metrics["J_after"])
+
+
+def test_gp_data_must_be_a_known_choice():
+    with pytest.raises(OptionError, match="gp_data"):
+        Pilco(CartPole().spec, {"gp_data": "filtered"}, seed=0)
+
+
 def test_planning_basis_bounds_the_basis_the_policy_search_plans_with():
     """planning_basis=10: J is computed on a 10-point FITC posterior of the trained GP (15 and 30 points here),
     logged per trial; by default the whole model (a full GP: all its points)."""

@@ -1,0 +1,116 @@
+"""The state smoother of the GP's training data (:mod:`plugins.pilco.smoothing`), on a damped pendulum whose
+GP is trained on its true transitions: the estimates are the minimiser of the smoother's objective (checked
+against scipy's least-squares solver on the same residuals), they are nearer the true states than the
+observations are, and a round of smoothing and refitting gives a GP whose data are those estimates."""
+
+from __future__ import annotations
+
+import numpy as np
+import pytest
+import torch
+from scipy.optimize import least_squares
+
+from harness.task import Episode
+from plugins.pilco.gp import GPModel, predict_latent
+from plugins.pilco.policy import transitions
+from plugins.pilco.propagate import StateLayout
+from plugins.pilco.smoothing import linked_steps, smooth_and_refit, smoothed_states
+
+DT = 0.1
+NOISE = np.array([0.05, 0.02])  # std of the measurements of [theta_dot, theta]
+LAYOUT = StateLayout.with_trig(2, [1])
+
+
+def step(x: np.ndarray, u: float) -> np.ndarray:
+    """A damped pendulum (theta = 0 down), one explicit step of dt."""
+    theta_dot, theta = x
+    return np.array([theta_dot + DT * (-9.8 * np.sin(theta) - 0.5 * theta_dot + u), theta + DT * theta_dot])
+
+
+def episode(rng: np.random.Generator, steps: int, terminated: bool = False) -> Episode:
+    states = [rng.normal(0.0, [0.5, 0.8])]
+    actions = rng.uniform(-2.0, 2.0, size=(steps, 1))
+    for u in actions[:, 0]:
+        states.append(step(states[-1], u))
+    states = np.array(states)
+    return Episode(observations=states + rng.normal(0.0, NOISE, size=states.shape), states=states, actions=actions,
+                   costs=np.zeros(steps), terminated=terminated)
+
+
+@pytest.fixture(scope="module")
+def pendulum():
+    rng = np.random.default_rng(3)
+    train = [episode(rng, 30) for _ in range(8)]
+    truth = [Episode(ep.states, ep.states, ep.actions, ep.costs) for ep in train]
+    model = GPModel()
+    model.fit(*transitions(truth, LAYOUT), seed=0)  # a model of the true dynamics
+    return model, [episode(rng, 12), episode(rng, 9, terminated=True)]
+
+
+def test_the_estimates_minimise_the_objective_as_scipy_finds_it(pendulum):
+    model, episodes = pendulum
+    posterior = model.posterior()
+    q = (0.3 * NOISE) ** 2
+    result = smoothed_states(posterior, LAYOUT, episodes, NOISE, q)
+
+    # the same objective as residuals, minimised by scipy from the observations
+    lengths = [linked_steps(ep) for ep in episodes]
+    Y = np.concatenate([ep.observations[:n + 1] for ep, n in zip(episodes, lengths)])
+    U = np.concatenate([ep.actions[:n] for ep, n in zip(episodes, lengths)])
+    start = np.concatenate([np.arange(o, o + n) for o, n in zip(np.cumsum([0] + [n + 1 for n in lengths])[:-1], lengths)])
+
+    def gp_inputs(X):
+        x = torch.as_tensor(X[start])
+        return torch.cat([LAYOUT.augment(x)[:, LAYOUT.model_index], torch.as_tensor(U)], dim=1)
+
+    with torch.no_grad():
+        s2 = predict_latent(posterior, gp_inputs(Y))[1].numpy() + q
+
+    def residuals(flat):
+        X = flat.reshape(Y.shape)
+        with torch.no_grad():
+            mean = predict_latent(posterior, gp_inputs(X))[0].numpy()
+        return np.concatenate([((Y - X) / NOISE).ravel(), ((X[start + 1] - X[start] - mean) / np.sqrt(s2)).ravel()])
+
+    reference = least_squares(residuals, Y.ravel(), xtol=1e-13, ftol=1e-13, gtol=1e-13).x.reshape(Y.shape)
+    estimates = np.concatenate([ep.observations[:n + 1] for ep, n in zip(result.episodes, lengths)])
+    assert np.abs(estimates - reference).max() < 1e-4 * NOISE.min()
+    reference_loss = 0.5 * (residuals(reference.ravel()) ** 2).sum()
+    assert result.loss == pytest.approx(reference_loss, rel=1e-6) and result.loss < reference_loss * (1 + 1e-9)
+    # a fall's last observation links nothing and stays as it was; the true states and actions are untouched
+    assert np.array_equal(result.episodes[1].observations[-1], episodes[1].observations[-1])
+    for got, ep in zip(result.episodes, episodes):
+        assert got.states is ep.states and got.actions is ep.actions
+
+
+def test_the_estimates_are_nearer_the_true_states_than_the_observations(pendulum):
+    model, episodes = pendulum
+    result = smoothed_states(model.posterior(), LAYOUT, episodes, NOISE, (0.1 * NOISE) ** 2)
+    truth = np.concatenate([ep.states for ep in episodes])
+    observed = np.sqrt(((np.concatenate([ep.observations for ep in episodes]) - truth) ** 2).mean(0))
+    estimated = np.sqrt(((np.concatenate([ep.observations for ep in result.episodes]) - truth) ** 2).mean(0))
+    assert np.all(estimated < 0.7 * observed), (estimated, observed)
+    assert result.observation_rms.shape == (2,) and np.all(result.observation_rms < 1.5)
+
+
+def test_smooth_and_refit_trains_the_last_gp_on_the_last_estimates(pendulum):
+    model, episodes = pendulum
+    seen = []
+
+    def refit(x, y):
+        seen.append((x, y))
+        gp = GPModel()
+        gp.fit(x, y, warm_start=model.hyperparameters, seed=0)
+        return gp
+
+    final, rounds = smooth_and_refit(model, refit, LAYOUT, episodes, NOISE, rounds=2, process_var=(0.3 * NOISE) ** 2)
+    assert len(rounds) == len(seen) == 2
+    x, y = transitions(rounds[-1].episodes, LAYOUT)
+    assert np.array_equal(seen[-1][0], x) and np.array_equal(seen[-1][1], y)
+    assert final.predict(x)[0].shape == y.shape
+
+
+def test_bad_noise_is_refused(pendulum):
+    model, episodes = pendulum
+    with pytest.raises(ValueError, match="noise_std must be a positive"):
+        smoothed_states(model.posterior(), LAYOUT, episodes, np.array([0.05, 0.0]))
