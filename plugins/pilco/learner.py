@@ -149,8 +149,10 @@ class Pilco(Learner):
                "in the inputs and with the opposite sign in the difference targets, otherwise teaches the GP a pull back to "
                "its data (results/findings_unicycle.md)", choices=("observations", "smoothed")),
         Option("smooth_rounds", int, 2, "gp_data=smoothed: rounds of smoothing the episodes and training the GP again", low=1),
-        Option("smooth_process_std", float, 0.0, "gp_data=smoothed: the smoother's allowance for the GP's error per step "
-               "beyond its own variance, as a multiple of the task's measurement noise std", low=0.0),
+        Option("smooth_process_std", float, 1.0, "gp_data=smoothed: the smoother's allowance for the GP's error per step "
+               "beyond its own variance, as a multiple of the task's measurement noise std (0: the GP's variance only, which "
+               "sent the unicycle's first policy search on 10 random rollouts to a saturated policy: results/findings_unicycle.md)",
+               low=0.0),
         Option("fresh_start_tol", float, None, "when J moved less than this fraction since the last trial and the "
                "last trial's realised cost was within this fraction of its prediction (stuck in an optimum the model "
                "is sure of), also search from fresh initial parameters and keep the lower J (default: the task preset's, "
