@@ -17,7 +17,7 @@ of the dynamics (a trained GP posterior of the state changes)::
 ``sigma`` the measurement noise std ``(D,)``, ``m`` the GP's predictive mean of the change, ``s_t^2`` its
 latent variance at the current estimate plus ``process_var`` (the model's error allowance; the systems
 here are deterministic, so it is not a noise of the system). Minimised by L-BFGS over all episodes at
-once, ``m``'s gradient in closed form (:func:`plugins.pilco.gp.predict_latent`). :func:`smooth_and_refit`
+once (``m`` by :func:`predictive_mean`, differentiated by autograd). :func:`smooth_and_refit`
 alternates it with refitting the GP on the estimates (a few rounds of an EM-like scheme: the GP that
 smooths the first round was itself trained on the observations).
 
@@ -35,6 +35,7 @@ import torch
 
 from harness.task import Episode
 from plugins.pilco.gp import DTYPE, GPModel, predict_latent
+from plugins.pilco.kernels import se_ard
 from plugins.pilco.posterior import GPPosterior
 from plugins.pilco.propagate import StateLayout
 
@@ -51,6 +52,20 @@ class SmoothingResult:
     loss: float
 
 
+#: test inputs per block of :func:`predictive_mean`: the block's ``(E, n, CHUNK)`` kernel values stay in cache
+#: (one unicycle smoothing step, 2,037 inputs on 300 basis points: 2.5x less CPU than in one block)
+CHUNK = 128
+
+
+def predictive_mean(posterior: GPPosterior, inputs: torch.Tensor) -> torch.Tensor:
+    """The GP's predictive mean ``(m, E)`` at ``inputs (m, d)``, differentiable by autograd, in blocks of
+    :data:`CHUNK` inputs (no variance: the smoother's objective needs only the mean at the estimates)."""
+    blocks = [torch.einsum("an,anm->ma", posterior.beta, se_ard(posterior.inputs, inputs[i:i + CHUNK], posterior.log_ell,
+                                                                  posterior.log_alpha))
+              for i in range(0, inputs.shape[0], CHUNK)]
+    return torch.cat(blocks) if blocks else inputs.new_zeros((0, posterior.beta.shape[0]))
+
+
 def linked_steps(episode: Episode) -> int:
     """The transitions of ``episode`` that the GP is trained on (a fall's last one dropped)."""
     return max(episode.steps - (1 if episode.terminated else 0), 0)
@@ -62,7 +77,7 @@ def smoothed_states(
     episodes: Sequence[Episode],
     noise_std: np.ndarray,
     process_var: float | np.ndarray = 0.0,
-    max_iter: int = 300,
+    max_iter: int = 100,
 ) -> SmoothingResult:
     """MAP estimates of every episode's states under the dynamics ``posterior`` (module docstring).
 
@@ -73,7 +88,7 @@ def smoothed_states(
         noise_std: the measurement noise std ``(D,)`` (> 0).
         process_var: added to the GP's latent variance of each change, ``()`` or ``(D,)``, in the
             state's units squared.
-        max_iter: L-BFGS iterations.
+        max_iter: L-BFGS iterations (on a unicycle run's 46 episodes 100 reach the loss of 300 to 1e-5 relative).
 
     Returns:
         A :class:`SmoothingResult`; episodes with no transition are returned unchanged.
@@ -101,7 +116,7 @@ def smoothed_states(
         s2 = predict_latent(posterior, inputs(Y))[1].clamp_min(0.0) + q  # weights fixed at the observations' inputs
 
     def loss_of(X: torch.Tensor) -> torch.Tensor:
-        mean = predict_latent(posterior, inputs(X))[0]
+        mean = predictive_mean(posterior, inputs(X))
         residual = X[end] - X[start] - mean
         return 0.5 * (((Y - X) / sigma) ** 2).sum() + 0.5 * (residual ** 2 / s2).sum()
 
@@ -119,7 +134,7 @@ def smoothed_states(
     with torch.no_grad():
         X = X.detach()
         loss = float(loss_of(X))
-        residual = X[end] - X[start] - predict_latent(posterior, inputs(X))[0]
+        residual = X[end] - X[start] - predictive_mean(posterior, inputs(X))
         observation_rms = (((X - Y) / sigma) ** 2).mean(0).sqrt().numpy()
         residual_rms = ((residual ** 2 / s2).mean(0)).sqrt().numpy()
     out = list(episodes)
@@ -140,7 +155,7 @@ def smooth_and_refit(
     noise_std: np.ndarray,
     rounds: int = 2,
     process_var: float | np.ndarray = 0.0,
-    max_iter: int = 300,
+    max_iter: int = 100,
 ) -> tuple[GPModel, list[SmoothingResult]]:
     """``rounds`` of: smooth ``episodes`` through the current GP (starting from ``model``, trained on the
     observations), then ``refit(inputs, targets)`` a GP on the smoothed transitions. Returns the last GP

@@ -114,3 +114,17 @@ def test_bad_noise_is_refused(pendulum):
     model, episodes = pendulum
     with pytest.raises(ValueError, match="noise_std must be a positive"):
         smoothed_states(model.posterior(), LAYOUT, episodes, np.array([0.05, 0.0]))
+
+
+def test_the_blocked_predictive_mean_is_the_gps_mean(pendulum):
+    from plugins.pilco.smoothing import CHUNK, predictive_mean
+
+    model, _ = pendulum
+    posterior = model.posterior()
+    x = torch.as_tensor(np.random.default_rng(0).normal(size=(2 * CHUNK + 5, posterior.inputs.shape[1])))
+    with torch.no_grad():
+        assert torch.allclose(predictive_mean(posterior, x), predict_latent(posterior, x)[0], rtol=1e-12, atol=1e-14)
+    a, b = x.clone().requires_grad_(True), x.clone().requires_grad_(True)
+    predictive_mean(posterior, a).sum().backward()
+    predict_latent(posterior, b)[0].sum().backward()  # its gradient in closed form
+    assert torch.allclose(a.grad, b.grad, rtol=1e-10, atol=1e-12)
