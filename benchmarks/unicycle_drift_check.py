@@ -46,7 +46,8 @@ noise-free targets against noisy ones: the errors over the variance are not a ca
 ``--lqr-speed S`` checks the riding LQR at ``S`` m/s (:mod:`tasks.unicycle_lqr`, as a PILCO linear controller) under
 the same GP instead of the run's policy.
 
-Writes ``drift_check_unicycle_<run>_t<K>[_<train-on>][_lqr<S>].md`` into ``--out``.
+Writes ``drift_check_unicycle_<run>_t<K>[_<train-on>][_lqr<S>].md`` into ``--out`` (``gp-smoothed`` with its settings:
+``gp-smoothed-r<rounds>-q<process std>``).
 """
 
 from __future__ import annotations
@@ -238,7 +239,10 @@ def main(argv: list[str] | None = None) -> None:
                 a, b = (np.concatenate(v) for v in zip(*pairs)) if pairs else (np.zeros(0), np.zeros(0))
                 cells.append(f"{np.corrcoef(a, b)[0, 1]:+.2f}" if len(a) > 2 else "–")
         lines.append(f"| {name} | " + " | ".join(cells) + " |")
-    write_report(lines, args.out / f"drift_check_unicycle_{args.run_id[:8]}_t{args.trial}{'_' + args.train_on if args.train_on else ''}"
+    train_on = args.train_on or ""
+    if train_on == "gp-smoothed":  # the smoothing's settings in the name: rounds, model-error allowance
+        train_on += f"-r{args.smooth_rounds}-q{'-'.join(f'{q:g}' for q in args.process_std)}"
+    write_report(lines, args.out / f"drift_check_unicycle_{args.run_id[:8]}_t{args.trial}{'_' + train_on if train_on else ''}"
                  f"{f'_lqr{args.lqr_speed:g}' if args.lqr_speed is not None else ''}.md")
 
 

@@ -380,6 +380,11 @@ def test_the_drift_check_refits_on_the_observations_to_the_runs_gp_and_on_true_s
     assert saved not in mixed and mixed[0] != mixed[1]  # one side true, the other observed: two more GPs
     lqr = body("_lqr0.3", "--lqr-speed", "0.3")
     assert lqr != saved and len(lqr) == len(saved)
+    smoothed = body("_gp-smoothed-r1-q1", "--train-on", "gp-smoothed", "--smooth-rounds", "1", "--process-std", "1")
+    assert smoothed != saved and len(smoothed) == len(saved)
+    assert smoothed != body("_gp-smoothed-r2-q1", "--train-on", "gp-smoothed", "--smooth-rounds", "2", "--process-std", "1")
+    text = (tmp_path / f"drift_check_unicycle_{result.run_id[:8]}_t3_gp-smoothed-r1-q1.md").read_text()
+    assert "Smoothing round 1: rms error of the estimates over that of the observations" in text
 
 
 def test_the_drift_checks_smoothing_keeps_a_quadratic_and_shortens_nothing():
