@@ -266,7 +266,7 @@ class Pilco(Learner):
         again on the estimates, ``smooth_rounds`` times (:func:`plugins.pilco.smoothing.smooth_and_refit`, each
         fit warm-started from the last). Returns the last fit, its ``seconds`` those of every fit and smoothing,
         and the smoothing's metrics: ``smoothing_obs_rms`` (rms of estimate - observation over the noise std, all
-        entries; about 1 where the estimates take out noise of the size the task says it has) and
+        entries; 1 if the estimates were the true states, :class:`~plugins.pilco.smoothing.SmoothingResult`) and
         ``smoothing_residual_rms`` (rms of the dynamics residuals over their allowed std)."""
         import time
 

@@ -128,3 +128,30 @@ def test_the_blocked_predictive_mean_is_the_gps_mean(pendulum):
     predictive_mean(posterior, a).sum().backward()
     predict_latent(posterior, b)[0].sum().backward()  # its gradient in closed form
     assert torch.allclose(a.grad, b.grad, rtol=1e-10, atol=1e-12)
+
+
+def test_the_smoother_keeps_to_the_gps_device(pendulum):
+    """With torch's default device a meta device (no data), a tensor the smoother made without the GP's device would
+    fail the first operation with the CPU's: every tensor it makes is on the GP's device (a GPU's, where the learner
+    trains there)."""
+    from tests.devices import default_device
+
+    model, episodes = pendulum
+    posterior = model.posterior()
+    expected = smoothed_states(posterior, LAYOUT, episodes, NOISE, NOISE ** 2, max_iter=5)
+    with default_device("meta"):
+        got = smoothed_states(posterior, LAYOUT, episodes, NOISE, NOISE ** 2, max_iter=5)
+    for a, b in zip(got.episodes, expected.episodes):
+        np.testing.assert_array_equal(a.observations, b.observations)
+
+
+@pytest.mark.skipif(not torch.cuda.is_available(), reason="no CUDA device here: the CUDA path is not exercised")
+def test_the_smoother_on_a_gpu_gives_the_cpus_estimates(pendulum):
+    model, episodes = pendulum
+    cpu = model.posterior()
+    gpu = type(cpu)(**{f: getattr(cpu, f).cuda() if torch.is_tensor(getattr(cpu, f)) else getattr(cpu, f)
+                       for f in cpu.__dataclass_fields__})
+    a = smoothed_states(cpu, LAYOUT, episodes, NOISE, NOISE ** 2)
+    b = smoothed_states(gpu, LAYOUT, episodes, NOISE, NOISE ** 2)
+    for x, y in zip(a.episodes, b.episodes):
+        np.testing.assert_allclose(x.observations, y.observations, atol=1e-6 * NOISE.min())
