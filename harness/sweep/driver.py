@@ -22,6 +22,9 @@ from harness.sweep.spec import Cell, SweepSpec, format_seeds, validate
 #: times a cell whose worker was lost (its process or its Ray node died) runs again in one invocation
 MAX_CELL_RETRIES = 2
 
+#: the statuses of a run a lost worker can leave for the driver to resume
+UNFINISHED = ("RUNNING", "KILLED")
+
 
 @dataclass(frozen=True)
 class CellRetry:
@@ -136,24 +139,22 @@ def _record_failed_child(store: Store, job: CellJob, error: str) -> str:
 
 
 def _mark_crashed(store: Store, job: CellJob, error: str) -> str:
-    """The child a dead worker left RUNNING is marked KILLED with the error (the next invocation
+    """The run a dead worker left unfinished is marked KILLED with the error (the next invocation
     continues it from its last checkpoint); without one, a FAILED child records the error. The
     cell's lease is revoked first: a worker that lives on writes nothing more."""
     revoke(store, job.parent_run_id, job.cell)
-    run_id = _mark_lost(store, job, error)
-    return _record_failed_child(store, job, error) if run_id is None else run_id
-
-
-def _mark_lost(store: Store, job: CellJob, error: str) -> str | None:
-    """The run a lost worker left unfinished (RUNNING, or KILLED by the worker itself as it went
-    down), marked KILLED (resumable) with the error; ``None`` if there is none."""
-    run = _newest_child(store, job, ("RUNNING", "KILLED"))
+    run = _newest_child(store, job, UNFINISHED)
     if run is None:
-        return None
+        return _record_failed_child(store, job, error)
+    _mark_lost(store, run, error)
+    return run.run_id
+
+
+def _mark_lost(store: Store, run: RunReader, error: str) -> None:
+    """``run``, which a lost worker left unfinished, marked KILLED (resumable) with the error."""
     store.set_tags(run.run_id, {layout.ERROR_TAG: error, layout.RESUMABLE_TAG: "true",
                                 layout.NOTE_TAG: f"**Stopped before its limit**: {error}. **Resumable**: the same sweep command continues it."})
     store.set_status(run.run_id, "KILLED")
-    return run.run_id
 
 
 def _retry_lost(store: Store, job: CellJob, error: str, grace: float = 0.0) -> tuple[CellJob, CellRetry] | CellOutcome:
@@ -170,15 +171,14 @@ def _retry_lost(store: Store, job: CellJob, error: str, grace: float = 0.0) -> t
     revoke(store, job.parent_run_id, job.cell)
     if grace > 0:
         time.sleep(grace)
-    left = _newest_child(store, job)
-    if left is not None and left.status == "FINISHED":
+    left = _newest_child(store, job, (*UNFINISHED, "FINISHED"))
+    if left is None:
+        return job, CellRetry(job.cell, error, None, None, 0)
+    if left.status == "FINISHED":
         return _finished_outcome(left, job)
-    run_id = _mark_lost(store, job, error)
-    node, trials = None, 0
-    if run_id is not None:
-        run = store.run(run_id)
-        node, trials = run.tags.get(layout.NODE_TAG), len(run.history(layout.INTERACTION_SECONDS))
-    return replace(job, resume_run_id=run_id or job.resume_run_id), CellRetry(job.cell, error, run_id, node, trials)
+    _mark_lost(store, left, error)
+    retry = CellRetry(job.cell, error, left.run_id, left.tags.get(layout.NODE_TAG), len(left.history(layout.INTERACTION_SECONDS)))
+    return replace(job, resume_run_id=left.run_id), retry
 
 
 def _finished_outcome(run: RunReader, job: CellJob) -> CellOutcome:
@@ -188,7 +188,7 @@ def _finished_outcome(run: RunReader, job: CellJob) -> CellOutcome:
                        stop_reason=run.tags.get(layout.STOP_REASON_TAG, ""), resumed=job.resume_run_id is not None)
 
 
-def _newest_child(store: Store, job: CellJob, statuses: tuple[str, ...] = ("RUNNING", "KILLED", "FINISHED")) -> RunReader | None:
+def _newest_child(store: Store, job: CellJob, statuses: tuple[str, ...]) -> RunReader | None:
     """The newest child run of ``job``'s cell with one of ``statuses``, if any. A cell's children are
     its runs of earlier invocations (FINISHED ones make a cell skipped, so it has none of those) and
     of this one, so the newest unfinished one is the run a resumed cell must continue."""

@@ -35,17 +35,22 @@ def layout_for(spec: TaskSpec, preset: Preset) -> StateLayout:
     return StateLayout(spec.state_dim, spec.angle_indices, model, policy)
 
 
+def linked_steps(episode: Episode) -> int:
+    """The transitions of ``episode`` the GP is trained on: all, but the last of a terminated episode (it left
+    the allowed region, e.g. the unicycle fell), as the reference ``rollout`` drops it."""
+    return max(episode.steps - (1 if episode.terminated else 0), 0)
+
+
 def transitions(episodes: tuple[Episode, ...] | list[Episode], layout: StateLayout) -> tuple[np.ndarray, np.ndarray]:
     """GP training data from recorded (noisy) observations.
 
     Inputs ``[a(x_t)[model_inputs], u_t]`` ``(n, q + F)``; targets ``x_{t+1} - x_t`` ``(n, D)``.
-    The last transition of a terminated episode (it left the allowed region, e.g. the unicycle
-    fell) is dropped, as the reference ``rollout`` does.
+    The last transition of a terminated episode is dropped (:func:`linked_steps`).
     """
     xs, us, ys = [], [], []
     for ep in episodes:
-        steps = ep.steps - (1 if ep.terminated else 0)
-        if steps <= 0:
+        steps = linked_steps(ep)
+        if steps == 0:
             continue
         xs.append(ep.observations[:steps])
         us.append(ep.actions[:steps])

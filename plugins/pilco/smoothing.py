@@ -15,7 +15,7 @@ of the dynamics (a trained GP posterior of the state changes)::
     L(X) = 1/2 sum_t |(Y_t - X_t) / sigma|^2 + 1/2 sum_t |(X_{t+1} - X_t - m(a(X_t), U_t)) / s_t|^2
 
 ``sigma`` the measurement noise std ``(D,)``, ``m`` the GP's predictive mean of the change, ``s_t^2`` its
-latent variance at the current estimate plus ``process_var`` (the model's error allowance; the systems
+latent variance at the observations (held fixed while ``X`` moves) plus ``process_var`` (the model's error allowance; the systems
 here are deterministic, so it is not a noise of the system). Minimised by L-BFGS over all episodes at
 once (``m`` by :func:`predictive_mean`, differentiated by autograd). :func:`smooth_and_refit`
 alternates it with refitting the GP on the estimates (a few rounds of an EM-like scheme: the GP that
@@ -36,6 +36,7 @@ import torch
 from harness.task import Episode
 from plugins.pilco.gp import DTYPE, GPModel, predict_latent
 from plugins.pilco.kernels import se_ard
+from plugins.pilco.policy import linked_steps, transitions
 from plugins.pilco.posterior import GPPosterior
 from plugins.pilco.propagate import StateLayout
 
@@ -65,11 +66,6 @@ def predictive_mean(posterior: GPPosterior, inputs: torch.Tensor) -> torch.Tenso
                                                                   posterior.log_alpha))
               for i in range(0, inputs.shape[0], CHUNK)]
     return torch.cat(blocks) if blocks else inputs.new_zeros((0, posterior.beta.shape[0]))
-
-
-def linked_steps(episode: Episode) -> int:
-    """The transitions of ``episode`` that the GP is trained on (a fall's last one dropped)."""
-    return max(episode.steps - (1 if episode.terminated else 0), 0)
 
 
 def smoothed_states(
@@ -115,12 +111,14 @@ def smoothed_states(
         return torch.cat([layout.augment(X[start])[:, layout.model_index], U], dim=1)
 
     with torch.no_grad():
-        s2 = predict_latent(posterior, inputs(Y))[1].clamp_min(0.0) + q  # weights fixed at the observations' inputs
+        s = (predict_latent(posterior, inputs(Y))[1].clamp_min(0.0) + q).sqrt()  # fixed at the observations' inputs
 
-    def loss_of(X: torch.Tensor) -> torch.Tensor:
-        mean = predictive_mean(posterior, inputs(X))
-        residual = X[end] - X[start] - mean
-        return 0.5 * (((Y - X) / sigma) ** 2).sum() + 0.5 * (residual ** 2 / s2).sum()
+    def scaled(X: torch.Tensor) -> tuple[torch.Tensor, torch.Tensor]:
+        """The objective's two kinds of residual, each over its std: observation, dynamics."""
+        return (Y - X) / sigma, (X[end] - X[start] - predictive_mean(posterior, inputs(X))) / s
+
+    def loss_of(observation: torch.Tensor, dynamics: torch.Tensor) -> torch.Tensor:
+        return 0.5 * (observation ** 2).sum() + 0.5 * (dynamics ** 2).sum()
 
     X = Y.clone().requires_grad_(True)
     optimiser = torch.optim.LBFGS([X], lr=1.0, max_iter=max_iter, history_size=20, line_search_fn="strong_wolfe",
@@ -128,17 +126,17 @@ def smoothed_states(
 
     def closure() -> torch.Tensor:
         optimiser.zero_grad()
-        loss = loss_of(X)
+        loss = loss_of(*scaled(X))
         loss.backward()
         return loss
 
     optimiser.step(closure)
     with torch.no_grad():
         X = X.detach()
-        loss = float(loss_of(X))
-        residual = X[end] - X[start] - predictive_mean(posterior, inputs(X))
-        observation_rms = (((X - Y) / sigma) ** 2).mean(0).sqrt().cpu().numpy()
-        residual_rms = ((residual ** 2 / s2).mean(0)).sqrt().cpu().numpy()
+        observation, dynamics = scaled(X)
+        loss = float(loss_of(observation, dynamics))
+        observation_rms = (observation ** 2).mean(0).sqrt().cpu().numpy()
+        residual_rms = (dynamics ** 2).mean(0).sqrt().cpu().numpy()
         X = X.cpu()
     out = list(episodes)
     offset = 0
@@ -163,8 +161,6 @@ def smooth_and_refit(
     """``rounds`` of: smooth ``episodes`` through the current GP (starting from ``model``, trained on the
     observations), then ``refit(inputs, targets)`` a GP on the smoothed transitions. Returns the last GP
     and each round's :class:`SmoothingResult` (every round smooths the original observations)."""
-    from plugins.pilco.policy import transitions
-
     results = []
     for _ in range(rounds):
         result = smoothed_states(model.posterior(), layout, episodes, noise_std, process_var, max_iter)

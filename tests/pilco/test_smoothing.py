@@ -12,9 +12,9 @@ from scipy.optimize import least_squares
 
 from harness.task import Episode
 from plugins.pilco.gp import GPModel, predict_latent
-from plugins.pilco.policy import transitions
+from plugins.pilco.policy import linked_steps, transitions
 from plugins.pilco.propagate import StateLayout
-from plugins.pilco.smoothing import linked_steps, smooth_and_refit, smoothed_states
+from plugins.pilco.smoothing import smooth_and_refit, smoothed_states
 
 DT = 0.1
 NOISE = np.array([0.05, 0.02])  # std of the measurements of [theta_dot, theta]
