@@ -67,6 +67,7 @@ from benchmarks.pilco_prediction_check import held_costs  # noqa: E402
 from benchmarks.report_file import command_line, write_report  # noqa: E402
 from harness.errors import exit_on_error  # noqa: E402
 from harness.evaluation import Evaluator  # noqa: E402
+from plugins.pilco.gp_data import GP_DATA_OPTIONS  # noqa: E402
 from plugins.pilco.policy import linear_policy_from_gain, transitions  # noqa: E402
 from plugins.pilco.sampling import sample_states, states_costs  # noqa: E402
 from plugins.pilco.saved_run import SavedPilcoRun  # noqa: E402
@@ -99,10 +100,12 @@ def main(argv: list[str] | None = None) -> None:
     parser.add_argument("--episodes", type=int, default=200)
     parser.add_argument("--steps", type=int, nargs="+", default=[10, 20, 40, 60])
     parser.add_argument("--smooth-window", type=int, default=5, help="--train-on smoothed: odd window of the filter, in steps")
-    parser.add_argument("--smooth-rounds", type=int, default=2, help="--train-on gp-smoothed: rounds of smoothing and refitting")
-    parser.add_argument("--process-std", type=float, nargs="+", default=[0.0],
+    learner_default = {option.name: option.default for option in GP_DATA_OPTIONS}
+    parser.add_argument("--smooth-rounds", type=int, default=learner_default["smooth_rounds"],
+                        help="--train-on gp-smoothed: rounds of smoothing and refitting (default: the learner's smooth_rounds)")
+    parser.add_argument("--process-std", type=float, nargs="+", default=[learner_default["smooth_process_std"]],
                         help="--train-on gp-smoothed: the smoother's model-error allowance per step, as a multiple of the "
-                        "measurement noise std (one value, or one per state entry)")
+                        "measurement noise std (one value, or one per state entry; default: the learner's smooth_process_std)")
     parser.add_argument("--train-on", choices=("observations", "true-states", "true-inputs", "true-targets", "smoothed", "gp-smoothed"),
                         default=None,
                         help="refit trial K's GP on the run's observations or on the true states (default: the run's GP as saved)")

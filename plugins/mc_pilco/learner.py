@@ -40,6 +40,7 @@ from harness.learner_logs import Logs, Timing
 from harness.options import Option
 from harness.task import TaskSpec
 from harness.threads import run_threads
+from plugins.pilco.gp_data import GP_DATA_OPTIONS, train_dynamics
 from plugins.pilco.horizon import GROW_HORIZON_ON, HorizonSchedule
 from plugins.pilco.presets import GENERIC, PRESETS, preset_with
 
@@ -101,6 +102,7 @@ class McPilco(Learner):
                "as MC-PILCO's own subset-of-data GP keeps the search's cost down: an Adam step's cost grows with their "
                "square (default: all)", low=1),
         Option("gp_max_evals", int, 300, "GP hyperparameter L-BFGS evaluations per trial", low=0),
+        *GP_DATA_OPTIONS,
         Option("gp_fitc_evals", int, 100, "FITC pseudo-input L-BFGS evaluations per trial (3x the first time)", low=0),
         Option("particles", int, 400, "particles per estimate of J (paper: 400)", low=1),
         Option("max_steps", int, 1500, "Adam steps per policy search at most (paper: 1500; cart-pole 2000-4000)", low=1),
@@ -245,7 +247,7 @@ class McPilco(Learner):
         import torch
 
         from plugins.pilco.gp import GPHyperparameters
-        from plugins.pilco.policy import PilcoPolicy, cpu_state_dict, transitions
+        from plugins.pilco.policy import PilcoPolicy, cpu_state_dict
         from plugins.random_learner import UniformRandomPolicy
 
         spec, o = self.spec, self.options
@@ -277,9 +279,8 @@ class McPilco(Learner):
                 episode = interaction.rollout(PilcoPolicy.snapshot(controller, self.layout))
                 realised = self.schedule.after_rollout(episode)  # the survival and realised rules
             trial += 1
-            x, y = transitions(interaction.episodes, self.layout)
-            self.report_status(f"GP training on {x.shape[0]} transitions")
-            fit = model.fit(x, y, warm_start=hyperparameters, seed=self.seed + trial)
+            fit, smoothing = train_dynamics(model, interaction.episodes, self.layout, o, spec.measurement_noise_std,
+                                            hyperparameters, self.report_status, seed=self.seed + trial)
             hyperparameters = model.hyperparameters
             posterior = model.posterior(max_basis=o["planning_basis"]).detach()
             objective, search = self.search_trial(controller, posterior, trial)
@@ -290,7 +291,7 @@ class McPilco(Learner):
                 "policy_skipped_steps": float(search.skipped), "dropout_reductions": float(search.reductions),
                 "final_dropout": search.final_dropout, "planning_horizon": float(self.horizon), "planning_basis": float(posterior.inputs.shape[0]),
                 "policy_parameters": float(sum(p.numel() for p in controller.parameters())),
-            }
+            } | smoothing
             if o["cost"] == "task":
                 self.metrics["cost_width"] = objective.cost.width
             if objective.cuda_graph and device.type == "cuda":  # replayed as a CUDA graph (1) or launched op by op (0)?

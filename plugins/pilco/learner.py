@@ -42,6 +42,7 @@ from harness.learner_logs import Logs, Timing, TrialFigure, save_figure
 from harness.options import Option
 from harness.task import Episode, TaskSpec
 from harness.threads import run_threads, torch_threads
+from plugins.pilco.gp_data import GP_DATA_OPTIONS, train_dynamics
 from plugins.pilco.horizon import GROW_HORIZON_ON, HorizonSchedule
 from plugins.pilco.presets import GENERIC, PRESETS, preset_with
 
@@ -49,7 +50,7 @@ if TYPE_CHECKING:
     import torch
 
     from plugins.pilco.controllers import SquashedController
-    from plugins.pilco.gp import FitReport, GPModel
+    from plugins.pilco.gp import GPModel
     from plugins.pilco.objective import PolicyObjective
     from plugins.pilco.policy import PilcoPolicy
 
@@ -143,16 +144,7 @@ class Pilco(Learner):
         Option("gp_refresh_pseudo", bool, False, "draw the FITC pseudo-inputs afresh from the data at every trial "
                "(default: continue from the previous trial's, as the reference does)"),
         Option("gp_restarts", int, 0, "extra GP training runs from perturbed starts (best kept)", low=0),
-        Option("gp_data", str, "observations", "what the dynamics GP is trained on: the recorded observations (the "
-               "reference), or smoothed: state estimates, each episode smoothed through the GP trained on the observations "
-               "and the GP trained again on them (smooth_rounds times; plugins.pilco.smoothing): the measurement noise, "
-               "in the inputs and with the opposite sign in the difference targets, otherwise teaches the GP a pull back to "
-               "its data (results/findings_unicycle.md)", choices=("observations", "smoothed")),
-        Option("smooth_rounds", int, 2, "gp_data=smoothed: rounds of smoothing the episodes and training the GP again", low=1),
-        Option("smooth_process_std", float, 1.0, "gp_data=smoothed: the smoother's allowance for the GP's error per step "
-               "beyond its own variance, as a multiple of the task's measurement noise std (0: the GP's variance only, which "
-               "sent the unicycle's first policy search on 10 random rollouts to a saturated policy: results/findings_unicycle.md)",
-               low=0.0),
+        *GP_DATA_OPTIONS,
         Option("fresh_start_tol", float, None, "when J moved less than this fraction since the last trial and the "
                "last trial's realised cost was within this fraction of its prediction (stuck in an optimum the model "
                "is sure of), also search from fresh initial parameters and keep the lower J (default: the task preset's, "
@@ -261,37 +253,12 @@ class Pilco(Learner):
         plt.close(fig)
         return path
 
-    def _fit_on_smoothed(self, model: GPModel, episodes: list[Episode], fit: FitReport, trial: int) -> tuple[FitReport, dict[str, float]]:
-        """``gp_data=smoothed``: ``model`` (trained on the observations) smooths the episodes, and is trained
-        again on the estimates, ``smooth_rounds`` times (:func:`plugins.pilco.smoothing.smooth_and_refit`, each
-        fit warm-started from the last). Returns the last fit, its ``seconds`` those of every fit and smoothing,
-        and the smoothing's metrics: ``smoothing_obs_rms`` (rms of estimate - observation over the noise std, all
-        entries; 1 if the estimates were the true states, :class:`~plugins.pilco.smoothing.SmoothingResult`) and
-        ``smoothing_residual_rms`` (rms of the dynamics residuals over their allowed std)."""
-        import time
-
-        from plugins.pilco.smoothing import smooth_and_refit
-
-        o, noise = self.options, self.spec.measurement_noise_std
-        self.report_status(f"smoothing {len(episodes)} episodes through the GP ({o['smooth_rounds']} rounds)")
-        t0, fits = time.perf_counter(), []
-
-        def refit(x: np.ndarray, y: np.ndarray) -> GPModel:
-            fits.append(model.fit(x, y, warm_start=model.hyperparameters, restarts=o["gp_restarts"], seed=self.seed + trial))
-            return model
-
-        _, rounds = smooth_and_refit(model, refit, self.layout, episodes, noise, o["smooth_rounds"],
-                                     (o["smooth_process_std"] * noise) ** 2)
-        metrics = {"smoothing_obs_rms": float(np.sqrt(np.mean(rounds[-1].observation_rms ** 2))),
-                   "smoothing_residual_rms": float(np.sqrt(np.mean(rounds[-1].residual_rms ** 2)))}
-        return replace(fits[-1], seconds=fit.seconds + time.perf_counter() - t0), metrics
-
     # ---- Algorithm 1 ---------------------------------------------------------------------------
     def learn(self, interaction: Interaction) -> Iterator[Policy]:
         import torch
 
         from plugins.pilco.gp import GPHyperparameters, GPModel
-        from plugins.pilco.policy import PilcoPolicy, cpu_state_dict, transitions
+        from plugins.pilco.policy import PilcoPolicy, cpu_state_dict
         from plugins.pilco.sampling import sampled_costs
         from plugins.random_learner import UniformRandomPolicy
 
@@ -328,12 +295,9 @@ class Pilco(Learner):
                     if o["plots"] and predicted is not None:
                         self.artifacts.append(self._plot_prediction(predicted, sampled, episode, workdir / f"prediction_trial{trial:03d}.png", trial))
                 trial += 1
-                x, y = transitions(interaction.episodes, self.layout)
-                self.report_status(f"GP training on {x.shape[0]} transitions")
-                fit = model.fit(x, y, warm_start=hyperparameters, restarts=o["gp_restarts"], seed=self.seed + trial)
-                smoothing = {}
-                if o["gp_data"] == "smoothed":
-                    fit, smoothing = self._fit_on_smoothed(model, interaction.episodes, fit, trial)
+                fit, smoothing = train_dynamics(model, interaction.episodes, self.layout, o, spec.measurement_noise_std,
+                                                hyperparameters, self.report_status, restarts=o["gp_restarts"],
+                                                seed=self.seed + trial)
                 hyperparameters = model.hyperparameters
 
                 posterior = model.posterior(max_basis=o["planning_basis"])

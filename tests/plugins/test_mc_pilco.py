@@ -186,6 +186,32 @@ def test_same_seed_same_run_and_resume_equals_uninterrupted() -> None:
     assert strip(resumed.history) == strip(reference.history)
 
 
+def test_gp_data_smoothed_smooths_for_mc_pilco_too(fit_inputs) -> None:
+    """The PILCO core's gp_data option (plugins.pilco.gp_data) in mc-pilco: per trial a fit on the observations,
+    then smooth_rounds fits on episodes smoothed through the GP (moved by about the noise, 0.01), the smoothing's
+    metrics logged per trial, the same run again from the same seed; the default fits once per trial."""
+    fits = fit_inputs
+    strip = lambda h: [{k: v for k, v in r.items() if "seconds" not in k or k == "interaction_seconds"} for r in h]  # noqa: E731
+    histories, trackers = {}, {}
+    for label, extra in (("default", {}), ("smoothed", {"gp_data": "smoothed"}), ("again", {"gp_data": "smoothed"})):
+        fits.clear()
+        trackers[label] = MemoryTracker()
+        config = RunConfig("mc-pilco", "cartpole", seed=1, learner_options={**TINY, **extra}, task_options={"horizon": 10},
+                           max_trials=2, eval_episodes=1)
+        histories[label] = strip(run(config, tracker=trackers[label]).history)
+        trackers[label].fits = list(fits)
+    assert len(trackers["default"].fits) == 2 and "smoothing_obs_rms" not in trackers["default"].metrics
+    smoothed = trackers["smoothed"].fits
+    assert len(smoothed) == 2 * 3 and np.array_equal(smoothed[0], trackers["default"].fits[0])
+    for x in smoothed[1:3]:
+        assert x.shape == smoothed[0].shape and 0 < np.abs(x - smoothed[0]).max() < 0.2
+    metrics = trackers["smoothed"].metrics
+    for key in ("smoothing_obs_rms", "smoothing_residual_rms", "smoothing_seconds"):
+        assert set(dict(metrics[key])) == {1, 2}
+    assert all(0 < v < 5 for v in dict(metrics["smoothing_obs_rms"]).values())
+    assert histories["again"] == histories["smoothed"] != histories["default"]
+
+
 def test_horizon_schedule_grows_the_particles_horizon_and_a_resume_continues_at_the_grown_one() -> None:
     """PILCO's horizon schedule in mc-pilco: cart-pole's cost per step lies in (0, 1], so the realised rule at a
     threshold of 10 doubles the planning horizon after every rollout of a learned policy (3 -> 6 -> 10, the task's),

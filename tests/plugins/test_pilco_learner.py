@@ -93,21 +93,11 @@ def test_gp_training_budgets_reach_the_dynamics_model(monkeypatch):
     assert (default.options["gp_fitc_evals"], default.options["gp_hyper_subset"], default.options["gp_refresh_pseudo"]) == (100, None, False)
 
 
-def test_gp_data_smoothed_trains_the_gp_again_on_the_smoothed_episodes(monkeypatch):
+def test_gp_data_smoothed_trains_the_gp_again_on_the_smoothed_episodes(fit_inputs):
     """gp_data=smoothed: after the fit on the observations, smooth_rounds more fits, each on transitions of
     episodes smoothed through the GP (not the observations: they move by about the noise), logged per trial;
     the GP planned with is the last one. The default trains on the observations only."""
-    import plugins.pilco.gp as gp_module
-    from plugins.pilco.gp import GPModel
-
-    fits = []
-
-    class Recording(GPModel):
-        def fit(self, inputs, targets, **kwargs):
-            fits.append(np.array(inputs, dtype=float))
-            return super().fit(inputs, targets, **kwargs)
-
-    monkeypatch.setattr(gp_module, "GPModel", Recording)
+    fits = fit_inputs
     trackers = {}
     for label, extra in (("default", {}), ("smoothed", {"gp_data": "smoothed", "smooth_rounds": "2"})):
         fits.clear()
@@ -124,6 +114,8 @@ def test_gp_data_smoothed_trains_the_gp_again_on_the_smoothed_episodes(monkeypat
         assert x.shape == first.shape and 0 < np.abs(x - first).max() < 0.2  # states moved, by about the noise (0.01)
     metrics = trackers["smoothed"].metrics
     assert set(dict(metrics["smoothing_obs_rms"])) == {1, 2} and all(0 < v < 5 for v in dict(metrics["smoothing_obs_rms"]).values())
+    gp_seconds, smoothing_seconds = dict(metrics["model_train_seconds"]), dict(metrics["smoothing_seconds"])
+    assert set(smoothing_seconds) == {1, 2} and all(0 < smoothing_seconds[k] < gp_seconds[k] for k in smoothing_seconds)
     assert dict(metrics["J_after"]) != dict(trackers["default"].metrics["J_after"])
 
 
