@@ -40,7 +40,7 @@ from harness.learner_logs import Logs, Timing
 from harness.options import Option
 from harness.task import TaskSpec
 from harness.threads import run_threads
-from plugins.pilco.gp_data import GP_DATA_OPTIONS, train_dynamics
+from plugins.pilco.gp_data import GP_DATA_OPTIONS, check_gp_data, train_dynamics
 from plugins.pilco.horizon import GROW_HORIZON_ON, HorizonSchedule
 from plugins.pilco.presets import GENERIC, PRESETS, preset_with
 
@@ -131,6 +131,7 @@ class McPilco(Learner):
             self.layout = layout_for(spec, self.preset)
         except ValueError as exc:
             raise OptionError(f"mc-pilco on {spec.name}: {exc}") from None
+        check_gp_data(o, spec)
         if o["target_scale"] is not None and (o["centres"] != "spread" or self.preset.controller != "rbf"):
             raise OptionError(f"mc-pilco on {spec.name}: target_scale sets the initial targets of an RBF policy with spread "
                               "centres; drop it, or use controller=rbf with centres=spread")

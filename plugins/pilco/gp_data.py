@@ -6,8 +6,9 @@ estimates, ``smooth_rounds`` times (:func:`plugins.pilco.smoothing.smooth_and_re
 noise, in the inputs and with the opposite sign in the difference targets, otherwise teaches the GP a
 pull back to its data (``results/findings_unicycle.md``).
 
-A learner declares :data:`GP_DATA_OPTIONS` among its options and calls :func:`train_dynamics` once per
-trial; ``pilco`` and ``mc-pilco`` do. This module imports torch only when it trains (``harness list``
+A learner declares :data:`GP_DATA_OPTIONS` among its options, checks them against its task with
+:func:`check_gp_data` when it is built, and calls :func:`train_dynamics` once per trial; ``pilco`` and
+``mc-pilco`` do. This module imports torch only when it trains (``harness list``
 reads the options without it).
 """
 
@@ -20,8 +21,9 @@ from typing import TYPE_CHECKING, Any
 
 import numpy as np
 
+from harness.errors import OptionError
 from harness.options import Option
-from harness.task import Episode
+from harness.task import Episode, TaskSpec
 
 if TYPE_CHECKING:
     from plugins.pilco.gp import FitReport, GPHyperparameters, GPModel
@@ -39,6 +41,16 @@ GP_DATA_OPTIONS = (
            "sent the unicycle's first policy search on 10 random rollouts to a saturated policy: results/findings_unicycle.md)",
            low=0.0),
 )
+
+
+def check_gp_data(options: Mapping[str, Any], spec: TaskSpec) -> None:
+    """Raise :class:`~harness.errors.OptionError` when ``options`` ask for smoothed states on a task whose
+    observations are not noisy in every entry: the smoother weighs each entry by its noise std, and there is
+    no noise to take out (at construction, instead of a ``ValueError`` after the first trial's fit)."""
+    noise = np.asarray(spec.measurement_noise_std, dtype=float)
+    if options["gp_data"] == "smoothed" and not bool((noise > 0).all()):
+        raise OptionError(f"gp_data=smoothed on {spec.name}: the task's measurement noise std is {noise.tolist()}, and "
+                          "smoothing needs noise on every state entry (set task.measurement_noise > 0, or gp_data=observations)")
 
 
 def train_dynamics(

@@ -42,7 +42,7 @@ from harness.learner_logs import Logs, Timing, TrialFigure, save_figure
 from harness.options import Option
 from harness.task import Episode, TaskSpec
 from harness.threads import run_threads, torch_threads
-from plugins.pilco.gp_data import GP_DATA_OPTIONS, train_dynamics
+from plugins.pilco.gp_data import GP_DATA_OPTIONS, check_gp_data, train_dynamics
 from plugins.pilco.horizon import GROW_HORIZON_ON, HorizonSchedule
 from plugins.pilco.presets import GENERIC, PRESETS, preset_with
 
@@ -192,6 +192,7 @@ class Pilco(Learner):
                 self.layout.policy_noise_cov(self.policy_noise_std)
             except ValueError as exc:
                 raise OptionError(f"plan_with_noise on {spec.name}: {exc} (drop --set plan_with_noise=true)") from None
+        check_gp_data(o, spec)
         self.device = resolve_device(o["device"])
         try:
             self.kernel = resolve_kernel(o["kernel"], self.device)

@@ -124,6 +124,19 @@ def test_gp_data_must_be_a_known_choice():
         Pilco(CartPole().spec, {"gp_data": "filtered"}, seed=0)
 
 
+@pytest.mark.parametrize("learner", ["pilco", "mc-pilco"])
+def test_gp_data_smoothed_needs_measurement_noise_and_says_so_at_construction(learner):
+    """Both learners refuse smoothing on a noise-free task when they are built, with the fix in the message;
+    with noise (the default) the same option is accepted."""
+    from plugins.mc_pilco.learner import McPilco
+
+    cls = {"pilco": Pilco, "mc-pilco": McPilco}[learner]
+    with pytest.raises(OptionError, match=r"gp_data=smoothed on cartpole: .*task\.measurement_noise > 0"):
+        cls(CartPole(measurement_noise=0.0).spec, {"gp_data": "smoothed"}, seed=0)
+    cls(CartPole().spec, {"gp_data": "smoothed"}, seed=0)
+    cls(CartPole(measurement_noise=0.0).spec, {}, seed=0)  # observations: no noise needed
+
+
 def test_planning_basis_bounds_the_basis_the_policy_search_plans_with():
     """planning_basis=10: J is computed on a 10-point FITC posterior of the trained GP (15 and 30 points here),
     logged per trial; by default the whole model (a full GP: all its points)."""
