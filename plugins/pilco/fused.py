@@ -32,6 +32,12 @@ them for constant columns whose gradient nobody reads. Here:
   numbers per step) and :func:`backward` only scales and adds them: ``Q`` is formed once per J + dJ,
   not twice (J + dJ 1.24-1.26x faster at the unicycle's and the double pendulum's sizes,
   ``results/benchmarks/objective_gradient_before_after_saved_gradients.md``);
+* where the backward pass needs no gradient by basis point (the dynamics GP in a policy search: its basis
+  points are fixed), ``G^T A`` is needed only summed over the basis points, and that sum is ``A^T (G 1)``,
+  which the rows' sums already give: ``forward_jac_rows`` (``forward``'s ``columns=False``) saves only the
+  row products ``G B``, ``G 1`` and the column sums ``G^T 1``, half the multiply-adds of ``forward_jac``'s
+  sweep and no ``(d, n)`` column accumulators in cache (J + dJ 1.11-1.20x on the unicycle and the double
+  pendulum, ``results/benchmarks/ab_objective_lean_jacobian.md``);
 * the diagonal pairs ``(a, a)`` (``forward``'s ``symmetric``) have a symmetric ``Q``, equal weights and
   ``A = B M``: ``forward_q_sym`` / ``forward_jac_sym`` form only its upper triangle (each element
   stands for its mirror too, the diagonal counts half), so half the ``exp``; their ``G^T A`` is
@@ -240,6 +246,9 @@ def input_gradients(ZT, ZWT, W, first, second, lb, w, gM, gA, gu, gBv, hA, hu, h
 
     the same arithmetic as the torch path without its ``(G, n, d)`` temporaries, every loop over ``i``.
     The pairs run first, since a mean group's ``g_logk`` sums the ``g_uv`` of every pair with its output.
+    A right group's ``G^T A`` is needed only summed over its basis points, and that sum is
+    ``A^T (G 1)`` with ``A = 2 ZW`` of the left group and ``G 1`` its ``g_uv``: ``gBv`` and ``hBv`` are read
+    in their last row (``G^T 1``) only, so the kernel need not make the others (``forward_jac_rows``).
     """
     G, d, n = ZT.shape
     e = lb.shape[0]
@@ -249,6 +258,7 @@ def input_gradients(ZT, ZWT, W, first, second, lb, w, gM, gA, gu, gBv, hA, hu, h
     g_lb = np.empty(n)
     T = np.empty((d, n))
     szw = np.empty(d)
+    sa = np.empty(d)
     for pp in range(p):
         gq = g_quad[pp]
         gt = g_trace[pp] if pp < nt else 0.0
@@ -276,6 +286,8 @@ def input_gradients(ZT, ZWT, W, first, second, lb, w, gM, gA, gu, gBv, hA, hu, h
                 for i in range(n):
                     s += guv[i] * ZWT[g, k, i]
                 g_Z_sum[g, k] = 2.0 * s
+                if side == 0:
+                    sa[k] = 2.0 * s  # A^T (G 1), A = 2 ZW: the right group's summed G^T A
             if side == 0:
                 g_hl[e + pp] = -hl
                 for i in range(n):
@@ -300,13 +312,7 @@ def input_gradients(ZT, ZWT, W, first, second, lb, w, gM, gA, gu, gBv, hA, hu, h
                         T[k, i] += guv[i] * ZT[g, k, i]
             else:
                 for k in range(d):
-                    s = 0.0
-                    for i in range(n):
-                        s += gq * gBv[pp, k, i]
-                    if pp < nt:
-                        for i in range(n):
-                            s += gt * hBv[pp, k, i]
-                    g_Z_sum[g, k] += s
+                    g_Z_sum[g, k] += sa[k]
                 for k in range(d):
                     for i in range(n):
                         T[k, i] = guv[i] * ZT[g, k, i]
@@ -507,6 +513,29 @@ _JAC_TRACE = '''{{zero_acc_h}}
                 if two:
                     hu[p, i1] = su1'''
 
+#: forward_jac_rows' saved gradients: G's row products gA = G B, hu = G 1 and its column sums G^T 1 only. With
+#: G = Q w_l w_r^T the row weight c0 = w_l[i0] is applied once per row (gA's sums run over Q w_r); hu is the
+#: forward sum r0, and gu = w_l * q_wr is left to the driver: c0 * s0 here would share its product with
+#: sq's multiply-add, which LLVM then no longer fuses, and J would no longer be forward_q's to the bit
+_JAC_ROWS = '''{zero_acc}
+            for j in range(n):
+                w = wr[p, j]
+                g0 = q0[j] * w
+                g1 = q1[j] * w
+{body_rows}
+{store_rows}
+            if p < ntrace:
+                t1 = 1.0 if two else 0.0
+{zero_acc_h}
+                for j in range(n):
+                    g0 = q0[j] * inv_k[p, i0, j]
+                    g1 = q1[j] * inv_k[p, i1, j]
+{body_rows_h}
+{store_h}
+                hu[p, i0] = r0
+                if two:
+                    hu[p, i1] = r1'''
+
 _FORWARD = '''
 @njit(fastmath=FASTMATH, nogil=True, cache=True, pipeline_class=NoAliasCompiler)
 def {signature}:
@@ -518,8 +547,10 @@ def {signature}:
         for c in range({d} + 1):
             for j in range(n):
                 gBv[p, c, j] = 0.0
+#COLS-BEGIN
         for j in range(n):
             gwr[p, j] = 0.0
+#COLS-END
 ''' + _PAIR_START + '''{rows}
             s0 = 0.0
             s1 = 0.0
@@ -544,6 +575,7 @@ def {signature}:
 #JAC-BEGIN
             c0 = wl[p, i0]
             c1 = wl[p, i1] if two else 0.0
+#COLS-BEGIN
 {load_a01}
 ''' + _JAC_QUAD.format(cols='range(n)') + '''
             for j in range(n):
@@ -551,6 +583,10 @@ def {signature}:
             if p < ntrace:
                 t1 = 1.0 if two else 0.0
 ''' + _JAC_TRACE.format(cols='range(n)', inv_k_i1='(t1 * inv_k[p, i1, j])') + '''
+#COLS-END
+#ROWS-BEGIN
+''' + _JAC_ROWS + '''
+#ROWS-END
 #JAC-END
         quad[p] = sq
         if p < ntrace:
@@ -628,6 +664,12 @@ _FORWARD_KERNELS = {
                     "i.e. backward's products with g_quad = 1, g_trace = 0 (gA, gu, gBv and gwr = Q^T w_l), and for "
                     "p < len(inv_k) that of trace_p, g_quad = 0, g_trace = 1 (hA, hu, hBv). Both are scalars per pair, "
                     "so the backward pass only scales and adds these."),
+    "forward_jac_rows": ("forward_jac_rows(L, Rt, q0, q1, first, last, Bt, wl, wr, inv_k, quad, trace, q_wr, gA, gBv, hA, hu, hBv)",
+                         "forward_jac without the gradients by basis point of the right factor: gA and gv = gBv[:, d] "
+                         "(hA, hu, hBv[:, d]) only (gu = w_l * q_wr: the driver); gBv[:, :d] (hBv) is left zero and no gwr is made. For moment matching's "
+                         "compiled backward pass (input_gradients), which needs G^T A only summed over the basis points, "
+                         "and that sum is A^T (G 1) = A^T gu. Its sweep has half the multiply-adds of forward_jac's: "
+                         "hu is the forward sum, w_l[i] scales gA's rows once."),
 }
 
 
@@ -653,13 +695,17 @@ def _forward_source(name: str, **fields) -> str:
     else:
         signature, doc = _FORWARD_KERNELS[name]
         text = _FORWARD.format(signature=signature, doc=doc, **fields)
-    kept, skipping = [], False
+    # forward_q* leave out the lines between #JAC-BEGIN and #JAC-END (the saved gradients), forward_jac_rows
+    # those between #COLS-BEGIN and #COLS-END (forward_jac's), the others those between #ROWS-BEGIN and #ROWS-END
+    skips = {"#JAC": name in ("forward_q", "forward_q_sym"), "#COLS": name == "forward_jac_rows",
+             "#ROWS": name != "forward_jac_rows"}
+    inside = dict.fromkeys(skips, False)  # the #COLS blocks lie inside #JAC ones
+    kept = []
     for line in text.split("\n"):
-        if line == "#JAC-BEGIN":
-            skipping = name in ("forward_q", "forward_q_sym")
-        elif line == "#JAC-END":
-            skipping = False
-        elif not skipping:
+        marker, _, end = line.partition("-")
+        if marker in skips and end in ("BEGIN", "END"):
+            inside[marker] = end == "BEGIN"
+        elif not any(inside[m] and skips[m] for m in skips):
             kept.append(line)
     return "\n".join(kept)
 
@@ -711,6 +757,19 @@ def source(d: int) -> str:
                           zero_acc_h=lines("s0_{c} = 0.0", 16) + "\n" + lines("s1_{c} = 0.0", 16),
                           body_g=products("gBv", 16), store_g=store("gA", 12),
                           body_h=products("hBv", 20), store_h=store("hA", 16))
+    def row_products(out: str, indent: int, w0: str, w1: str) -> str:
+        """forward_jac_rows' loop body: g0, g1 times B into s0_c, s1_c and their column sums into ``out[p, d]``."""
+        return "\n".join(
+            [" " * indent + f"b{c} = Bt[p, {c}, j]" for c in cs]
+            + [" " * indent + f"s0_{c} += g0 * b{c}" for c in cs]
+            + [" " * indent + f"s1_{c} += g1 * b{c}" for c in cs]
+            + [" " * indent + f"{out}[p, {d}, j] += g0 * {w0} + g1 * {w1}"]
+        )
+
+    forward_fields.update(body_rows=row_products("gBv", 16, "c0", "c1"),
+                          store_rows=(lines("gA[p, i0, {c}] = c0 * s0_{c}", 12) + "\n" + " " * 12 + "if two:\n"
+                                      + lines("gA[p, i1, {c}] = c1 * s1_{c}", 16)),
+                          body_rows_h=row_products("hBv", 20, "1.0", "t1"))
     # the symmetric kernels loop over columns j >= i0 and multiply the mirrors' part by B's rows i0, i1
     # (there A = B M: the driver maps G B to G A)
     sym_fields = dict(forward_fields, rows=rows.replace("for j in range(n):", "for j in range(i0u, nu):"),
@@ -833,10 +892,11 @@ def exp_bilinear(left: torch.Tensor, right: torch.Tensor, out: torch.Tensor) -> 
     return out
 
 
-def _symmetric_jacobian(j: dict, q_wr: np.ndarray, M: np.ndarray, first: int, last: int) -> None:
+def _symmetric_jacobian(j: dict, q_wr: np.ndarray, M: np.ndarray, first: int, last: int, columns: bool = True) -> None:
     """Completes what ``forward_jac_sym`` left in ``j`` for pairs ``first .. last - 1`` (symmetric ``G``):
     ``G B`` and ``G 1`` are their rows' part plus their mirrors' part, and, with ``A_p = B_p M_p``,
-    ``G^T A = G B M``, ``G^T 1 = G 1`` and ``Q^T w_l = Q w_r = q_wr``."""
+    ``G^T A = G B M``, ``G^T 1 = G 1`` and ``Q^T w_l = Q w_r = q_wr`` (without ``columns``, ``G^T A`` is left
+    zero and ``Q^T w_l`` is not copied, as ``forward_jac_rows`` does for the other pairs)."""
     d = M.shape[1]
     for g, u, v in (("gA", "gu", "gBv"), ("hA", "hu", "hBv")):
         stop = min(last, j[g].shape[0])
@@ -846,13 +906,14 @@ def _symmetric_jacobian(j: dict, q_wr: np.ndarray, M: np.ndarray, first: int, la
         gA = j[g][s] + j[v][s, :d].transpose(0, 2, 1)  # (k, n, d)
         gu = j[u][s] + j[v][s, d]
         j[g][s], j[u][s] = gA, gu
-        j[v][s, :d] = np.matmul(gA, M[s]).transpose(0, 2, 1)
+        j[v][s, :d] = np.matmul(gA, M[s]).transpose(0, 2, 1) if columns else 0.0
         j[v][s, d] = gu
-    j["gwr"][first:last] = q_wr[first:last]
+    if columns:
+        j["gwr"][first:last] = q_wr[first:last]
 
 
 def forward(left, right, w_left, w_right, inv_k, workspace, out=None, threads: int = 1, block=1,
-            inline: bool = False, jacobian: dict | None = None, symmetric=None):
+            inline: bool = False, jacobian: dict | None = None, symmetric=None, columns: bool = True):
     """``quad (P,)``, ``trace (E',)``, ``Q w_right (P, n)``; ``Q`` into ``out`` (kept) if given.
 
     ``left, right (P, n, d + 2)`` with ``Q_p = exp(left_p right_p^T)``, formed ``block`` pairs at a
@@ -865,7 +926,12 @@ def forward(left, right, w_left, w_right, inv_k, workspace, out=None, threads: i
     ``symmetric`` (with ``inline``): ``M (S, d, d)`` for pairs ``0 .. S - 1`` whose ``Q_p`` is symmetric,
     ``w_left[p] = w_right[p]``, ``inv_k[p]`` symmetric and ``left[p, :, :d] = right[p, :, :d] M_p``
     (moment matching's diagonal pairs ``(a, a)``: ``M = 2 T``). Their kernels form only the upper
-    triangle of ``Q`` (half the ``exp``), and their ``G^T A`` is ``G B M``, no product of its own."""
+    triangle of ``Q`` (half the ``exp``), and their ``G^T A`` is ``G B M``, no product of its own.
+
+    ``columns=False`` (with ``jacobian``): the saved gradients without those by basis point of the right
+    factor (``G^T A`` and ``Q^T w_l``; ``jacobian["columns"]`` says so), ``kernels(d).forward_jac_rows``:
+    for a backward pass that needs ``G^T A`` only summed over the basis points, ``A^T (G 1)``
+    (:func:`input_gradients`). :func:`backward` cannot use such a jacobian."""
     p, n = left.shape[0], left.shape[1]
     e = inv_k.shape[0]
     quad, trace, q_wr = np.empty(p), np.empty(e), np.empty((p, n))
@@ -886,7 +952,7 @@ def forward(left, right, w_left, w_right, inv_k, workspace, out=None, threads: i
             # no-alias promise concerns the arrays they write). The dict keeps just what the backward pass reads
             A, Bt = L, Rt
             jacobian.update(gA=np.empty((p, n, d)), gu=np.empty((p, n)), gBv=np.empty((p, d + 1, n)), gwr=np.empty((p, n)),
-                            hA=np.empty((e, n, d)), hu=np.empty((e, n)), hBv=np.empty((e, d + 1, n)))
+                            hA=np.empty((e, n, d)), hu=np.empty((e, n)), hBv=np.empty((e, d + 1, n)), columns=bool(columns))
             j = jacobian
     elif jacobian is not None:
         raise ValueError("jacobian needs inline (the fused kernel)")
@@ -902,9 +968,14 @@ def forward(left, right, w_left, w_right, inv_k, workspace, out=None, threads: i
             if start < mid:
                 module.forward_jac_sym(L, Rt, np.empty(n), np.empty(n), start, mid, Bt, wl, wr, ik, quad, trace, q_wr,
                                        j["gA"], j["gu"], j["gBv"], j["hA"], j["hu"], j["hBv"])
-                _symmetric_jacobian(j, q_wr, M, start, mid)
-            module.forward_jac(L, Rt, np.empty(n), np.empty(n), mid, stop, A, Bt, wl, wr, ik, quad, trace, q_wr,
-                               j["gA"], j["gu"], j["gBv"], j["gwr"], j["hA"], j["hu"], j["hBv"])
+                _symmetric_jacobian(j, q_wr, M, start, mid, columns)
+            if columns:
+                module.forward_jac(L, Rt, np.empty(n), np.empty(n), mid, stop, A, Bt, wl, wr, ik, quad, trace, q_wr,
+                                   j["gA"], j["gu"], j["gBv"], j["gwr"], j["hA"], j["hu"], j["hBv"])
+            else:
+                module.forward_jac_rows(L, Rt, np.empty(n), np.empty(n), mid, stop, Bt, wl, wr, ik, quad, trace, q_wr,
+                                        j["gA"], j["gBv"], j["hA"], j["hu"], j["hBv"])
+                np.multiply(wl[mid:stop], q_wr[mid:stop], out=j["gu"][mid:stop])  # G 1 = w_l * (Q w_r)
             return
         for s in range(start, stop, size):
             t = min(s + size, stop)
@@ -932,6 +1003,9 @@ def backward(left, right, w_left, w_right, inv_k, q_wr, g_quad, g_trace, workspa
     gq = _numpy(g_quad) if g_quad is not None else np.zeros(p)
     gt = _numpy(g_trace[:e]) if e > 0 else np.zeros(0)
     need_wr = bool(needs[3])
+    if jacobian is not None and not jacobian.get("columns", True):
+        raise ValueError("this jacobian was saved without the gradients by basis point (forward(columns=False)): "
+                         "backward needs forward's default, columns=True, or no jacobian")
     if jacobian is not None and Q is None:
         # quad_p and trace_p are scalars: their gradients scale (g_quad, g_trace) and add
         j = jacobian

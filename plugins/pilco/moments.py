@@ -353,7 +353,7 @@ class MomentMatchingGP:
     """
 
     def __init__(self, posterior: GPPosterior, kernel: str | None = None, threads: int = 1,
-                 symmetric_pairs: bool = True, compiled_glue: bool = True) -> None:
+                 symmetric_pairs: bool = True, compiled_glue: bool = True, lean_jacobian: bool = True) -> None:
         device = posterior.beta.device
         self.kernel = resolve_kernel(kernel, device)
         #: with the fused kernel, form the kernel's factors in one compiled sweep (:meth:`_compiled_factors`)
@@ -364,6 +364,11 @@ class MomentMatchingGP:
         #: with the fused kernel, form half the symmetric Q of each diagonal pair (False: the whole Q, as
         #: before; kept for side-by-side benchmarks, benchmarks/ab_objective.py)
         self.symmetric_pairs = bool(symmetric_pairs)
+        #: with the fused kernel and the compiled glue, where the posterior has no gradients (the dynamics GP
+        #: during a policy search), save only what :meth:`_backward_compiled` reads: not the gradients by
+        #: basis point of the right factor, whose sum is all it needs (plugins.pilco.fused.forward's
+        #: ``columns``). False: the whole jacobian, as before (kept for benchmarks/ab_objective.py)
+        self.lean_jacobian = bool(lean_jacobian)
         self.threads = max(1, int(threads))
         if self.kernel in COMPILED_KERNELS:
             from plugins.pilco import fused
@@ -501,7 +506,9 @@ class MomentMatchingGP:
             if kept is not None:
                 quad, trace, q_wr = contract(left, right, self.beta_a, self.beta_b, inv_k, self.workspace, out=kept[0])
             elif jac is not None:
-                quad, trace, q_wr = contract(left, right, self.beta_a, self.beta_b, inv_k, self.workspace, jacobian=jac, **sym)
+                columns = not (compiled and self.lean_jacobian and not self.has_grad)
+                quad, trace, q_wr = contract(left, right, self.beta_a, self.beta_b, inv_k, self.workspace, jacobian=jac,
+                                             columns=columns, **sym)
             else:
                 quad, trace, q_wr = contract(left, right, self.beta_a, self.beta_b, inv_k, self.workspace, **sym)
             saved = (m, S, b_inv, W, Z, ZW, q, lb, lbt, left, right, inv_k, q_wr, None if kept is None else kept[1], jac, M)
@@ -521,6 +528,10 @@ class MomentMatchingGP:
         gM = gM - (gV + gV.T) @ M
         if jac is not None and self.compiled_glue and not any(need_c.values()):  # jac: the fused kernel saved it
             return self._backward_compiled(saved, gM, gC, g_quad, g_trace, needs)
+        if jac is not None and not jac["columns"]:
+            # a caller asks for gradients of constants that had none in the forward pass: the lean jacobian
+            # lacks those by basis point, so the contraction's backward forms Q again (inline)
+            jac = None
         grad_left, grad_right, g_beta_a, g_beta_b, g_inv_k = self._contract_backward(
             left, right, self.beta_a, self.beta_b, inv_k, q_wr, g_quad, g_trace, self.workspace,
             (True, True, need_c["beta_a"], need_c["beta_b"], need_c["inv_k"] and not mean_only),

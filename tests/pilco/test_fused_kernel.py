@@ -296,6 +296,36 @@ def test_objective_is_the_same_with_either_kernel(task, options, n, horizon) -> 
         assert J_2 == J_n and np.array_equal(g_2, g_n)
 
 
+def _agree_under_two_settings(seed, num_outputs, n, d, mean_only, needs_list, settings) -> list:
+    """M, V, C and the gradients (``MomentMatchingGP.backward`` with each of ``needs_list``) of one random
+    posterior and input under two ``MomentMatchingGP`` settings of the fused kernel agree to 1e-12 relative.
+    Returns each forward pass's saved intermediates (per ``needs``, per setting)."""
+    from tests.pilco.random_gp import random_gaussian, random_posterior
+
+    gen = torch.Generator().manual_seed(seed)
+    post = random_posterior(num_outputs, n, d, gen)
+    m, S = random_gaussian(d, gen)
+    gM = torch.randn(num_outputs, generator=gen, dtype=DT)
+    gV = torch.randn(num_outputs, num_outputs, generator=gen, dtype=DT)
+    gC = torch.randn(d, num_outputs, generator=gen, dtype=DT)
+    kept = []
+    for needs in needs_list:
+        got, moments_of = [], []
+        for options in settings:
+            gp = moments.MomentMatchingGP(post, kernel="fused", **options)
+            out, saved = gp.forward(m, S, mean_only, slot=0)
+            moments_of.append(out)
+            kept.append(saved)
+            got.append(gp.backward(saved, gM, gV, gC, mean_only, needs))
+        for a, b in zip(*moments_of):  # V = w^T Q w - M^2 + alpha^2 - tr(...) cancels: 1e-12 as the gradients
+            assert _rel(a, b) < 1e-12
+        for a, b in zip(*got):
+            assert (a is None) == (b is None)
+            if a is not None:
+                assert _rel(a, b) < 1e-12
+    return kept
+
+
 @pytest.mark.parametrize("num_outputs,n,d", [(1, 7, 1), (3, 20, 4), (6, 33, 9), (2, 1, 2)])
 @pytest.mark.parametrize("mean_only", [False, True])
 def test_compiled_backward_matches_the_torch_operations(num_outputs, n, d, mean_only) -> None:
@@ -304,28 +334,10 @@ def test_compiled_backward_matches_the_torch_operations(num_outputs, n, d, mean_
     against the torch operations they replace (``compiled_glue=False``): M, V, C and the gradients to 1e-12
     relative, odd and even ``n``, ``n = 1``, with and without the trace term, and where only ``m``
     or only ``S`` is asked for."""
-    from tests.pilco.random_gp import random_gaussian, random_posterior
-
-    gen = torch.Generator().manual_seed(31 * n + d)
-    post = random_posterior(num_outputs, n, d, gen)
-    m, S = random_gaussian(d, gen)
-    gM = torch.randn(num_outputs, generator=gen, dtype=DT)
-    gV = torch.randn(num_outputs, num_outputs, generator=gen, dtype=DT)
-    gC = torch.randn(d, num_outputs, generator=gen, dtype=DT)
     no_constants = [False] * len(moments._CONSTANTS)
-    for needs in ([True, True], [True, False], [False, True]):
-        got, moments_of = [], []
-        for compiled in (True, False):
-            gp = moments.MomentMatchingGP(post, kernel="fused", compiled_glue=compiled)
-            out, saved = gp.forward(m, S, mean_only, slot=0)
-            moments_of.append(out)
-            got.append(gp.backward(saved, gM, gV, gC, mean_only, needs + no_constants))
-        for a, b in zip(*moments_of):  # V = w^T Q w - M^2 + alpha^2 - tr(...) cancels: 1e-12 as the gradients
-            assert _rel(a, b) < 1e-12
-        for a, b in zip(*got):
-            assert (a is None) == (b is None)
-            if a is not None:
-                assert _rel(a, b) < 1e-12
+    _agree_under_two_settings(31 * n + d, num_outputs, n, d, mean_only,
+                              [[True, True] + no_constants, [True, False] + no_constants, [False, True] + no_constants],
+                              ({"compiled_glue": True}, {"compiled_glue": False}))
 
 
 def test_compiled_backward_is_skipped_where_the_posterior_needs_gradients() -> None:
@@ -341,3 +353,66 @@ def test_compiled_backward_is_skipped_where_the_posterior_needs_gradients() -> N
     needs = [True, True] + [name == "X_z" for name in moments._CONSTANTS]
     grads = gp.backward(saved, torch.ones(2, dtype=DT), torch.ones(2, 2, dtype=DT), torch.ones(3, 2, dtype=DT), False, needs)
     assert grads[2] is not None and grads[2].shape == gp.X_z.shape
+
+
+@pytest.mark.parametrize("num_outputs,n,d", [(1, 7, 1), (2, 8, 3), (3, 33, 9), (4, 20, 13), (1, 1, 2)])
+@pytest.mark.parametrize("traced", [True, False])
+@pytest.mark.parametrize("symmetric", [False, True])
+def test_lean_jacobian_is_the_full_one_without_its_columns(num_outputs, n, d, traced, symmetric) -> None:
+    """``forward(columns=False)`` (``forward_jac_rows`` for the ordinary pairs): the forward sums (bit for bit
+    those without gradients) and the saved
+    ``gA, gu, G^T 1`` (``hA, hu, hBv[:, d]``) as the full jacobian's to round-off, ``G^T A`` left zero; and the
+    identity the compiled backward pass relies on instead, ``sum_j (G^T A)_j = A^T (G 1)``, on the full one."""
+    if symmetric:
+        left, right, wl, wr, inv_k, g_quad, g_trace, M = _symmetric_inputs(num_outputs, n, d, seed=5 * n + d)
+        sym = {"symmetric": M}
+    else:
+        left, right, wl, wr, inv_k, *_ = _contraction_inputs(num_outputs, n, d, seed=5 * n + d)
+        sym = {}
+    if not traced:
+        inv_k = inv_k[:0]
+    full, lean = {}, {}
+    ref = fused.forward(left, right, wl, wr, inv_k, moments._Workspace(), inline=True, jacobian=full, **sym)
+    got = fused.forward(left, right, wl, wr, inv_k, moments._Workspace(), inline=True, jacobian=lean, columns=False, **sym)
+    plain = fused.forward(left, right, wl, wr, inv_k, moments._Workspace(), inline=True, **sym)
+    assert full["columns"] and not lean["columns"]
+    for a, b, c in zip(got, ref, plain):
+        assert torch.equal(a, c) and torch.equal(b, c)  # J with and without gradients: the same to the bit
+    for key in ("gA", "gu", "hA", "hu"):
+        if full[key].size:
+            assert _rel(torch.from_numpy(lean[key]), torch.from_numpy(full[key])) < 1e-13
+    for v in ("gBv", "hBv"):
+        if full[v].size:
+            assert _rel(torch.from_numpy(lean[v][:, d]), torch.from_numpy(full[v][:, d])) < 1e-13
+            assert not lean[v][:, :d].any()
+    A = left[..., :d].numpy()
+    for u, v in (("gu", "gBv"), ("hu", "hBv")):
+        k = full[u].shape[0]
+        if k:
+            summed = full[v][:, :d].sum(-1)  # (k, d): G^T A summed over the basis points
+            assert np.abs(summed - np.einsum("pi,pic->pc", full[u], A[:k])).max() <= 1e-12 * np.abs(summed).max()
+
+
+def test_backward_refuses_a_lean_jacobian() -> None:
+    left, right, wl, wr, inv_k, g_quad, g_trace = _contraction_inputs(2, 9, 3, seed=4)
+    lean = {}
+    q_wr = fused.forward(left, right, wl, wr, inv_k, moments._Workspace(), inline=True, jacobian=lean, columns=False)[2]
+    with pytest.raises(ValueError, match="columns=True"):
+        fused.backward(left, right, wl, wr, inv_k, q_wr, g_quad, g_trace, moments._Workspace(),
+                       (True, True, True, True, False), inline=True, jacobian=lean)
+
+
+@pytest.mark.parametrize("num_outputs,n,d", [(1, 7, 1), (3, 20, 4), (6, 33, 9), (2, 1, 2)])
+@pytest.mark.parametrize("symmetric_pairs", [True, False])
+@pytest.mark.parametrize("mean_only", [False, True])
+def test_lean_jacobian_gives_the_full_jacobians_gradients(num_outputs, n, d, symmetric_pairs, mean_only) -> None:
+    """``MomentMatchingGP(lean_jacobian=True)`` (the default) against ``False``: M, V, C and the gradients wrt
+    ``m`` and ``S`` to 1e-12; and where a caller asks for a constant's gradient after a lean forward pass
+    (``X_z``), the backward pass forms ``Q`` again and gives the full jacobian's gradients."""
+    no_constants = [False] * len(moments._CONSTANTS)
+    with_x = [name == "X_z" for name in moments._CONSTANTS]
+    saved = _agree_under_two_settings(17 * n + d, num_outputs, n, d, mean_only,
+                                      [[True, True] + no_constants, [True, False] + no_constants, [True, True] + with_x],
+                                      ({"symmetric_pairs": symmetric_pairs, "lean_jacobian": True},
+                                       {"symmetric_pairs": symmetric_pairs, "lean_jacobian": False}))
+    assert [s[-2]["columns"] for s in saved] == [False, True] * 3
