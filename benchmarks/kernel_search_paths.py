@@ -10,7 +10,8 @@ the run's settings and warm start); then the learner's policy search (L-BFGS-B w
 preset's budgets) runs from the same fresh controller several times, one torch thread each:
 
 * with each of ``--kernels`` (default: ``numba fused``; ``fused-whole`` is ``fused`` forming the whole ``Q`` of
-  the diagonal pairs, ``MomentMatchingGP(symmetric_pairs=False)``, as before it formed half), and
+  the diagonal pairs, ``MomentMatchingGP(symmetric_pairs=False)``, as before it formed half;
+  ``fused-full-jacobian`` is ``fused`` saving the whole jacobian, ``lean_jacobian=False``), and
 * with the first kernel again from theta moved by one ulp per entry (random signs, fixed seed): the
   control. Kernels that round differently cannot agree more closely than this.
 
@@ -54,7 +55,8 @@ def fitted_posterior(data_path: Path, learner):
 
 #: ``--kernels`` name -> (``MomentMatchingGP`` kernel, its other keyword arguments)
 KERNELS = {"torch": ("torch", {}), "numba": ("numba", {}), "fused": ("fused", {}),
-           "fused-whole": ("fused", {"symmetric_pairs": False})}
+           "fused-whole": ("fused", {"symmetric_pairs": False}),
+           "fused-full-jacobian": ("fused", {"lean_jacobian": False})}
 
 
 def one_search(learner, posterior, kernel: str, nudge: bool, seed: int) -> dict:
