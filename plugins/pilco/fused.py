@@ -36,8 +36,8 @@ them for constant columns whose gradient nobody reads. Here:
   points are fixed), ``G^T A`` is needed only summed over the basis points, and that sum is ``A^T (G 1)``,
   which the rows' sums already give: ``forward_jac_rows`` (``forward``'s ``columns=False``) saves only the
   row products ``G B``, ``G 1`` and the column sums ``G^T 1``, half the multiply-adds of ``forward_jac``'s
-  sweep and no ``(d, n)`` column accumulators in cache (J + dJ 1.11-1.20x on the unicycle and the double
-  pendulum, ``results/benchmarks/ab_objective_lean_jacobian.md``);
+  sweep and no ``(d, n)`` column accumulators in cache (J + dJ 1.21x on the double pendulum and 1.23x on the
+  unicycle on one thread, 1.12x on two, ``results/benchmarks/ab_objective_lean_jacobian*.md``);
 * the diagonal pairs ``(a, a)`` (``forward``'s ``symmetric``) have a symmetric ``Q``, equal weights and
   ``A = B M``: ``forward_q_sym`` / ``forward_jac_sym`` form only its upper triangle (each element
   stands for its mirror too, the diagonal counts half), so half the ``exp``; their ``G^T A`` is
@@ -726,12 +726,16 @@ def source(d: int) -> str:
     def exponent(row: str) -> str:
         return " + ".join(f"l{row}{c} * Rt[p, {c}, j]" for c in ks)
 
+    def times_b(indent: int) -> list[str]:
+        """Loop-body lines accumulating G's rows g0, g1 times B into s0_c, s1_c."""
+        return ([" " * indent + f"b{c} = Bt[p, {c}, j]" for c in cs]
+                + [" " * indent + f"s0_{c} += g0 * b{c}" for c in cs]
+                + [" " * indent + f"s1_{c} += g1 * b{c}" for c in cs])
+
     def products(out: str, indent: int) -> str:
         """The loop body accumulating G's rows g0, g1 times B (into s0_c, s1_c, su0, su1) and A (into ``out``)."""
         return "\n".join(
-            [" " * indent + f"b{c} = Bt[p, {c}, j]" for c in cs]
-            + [" " * indent + f"s0_{c} += g0 * b{c}" for c in cs]
-            + [" " * indent + f"s1_{c} += g1 * b{c}" for c in cs]
+            times_b(indent)
             + [" " * indent + f"{out}[p, {c}, j] += g0 * a0_{c} + g1 * a1_{c}" for c in cs]
             + [" " * indent + "su0 += g0", " " * indent + "su1 += g1", " " * indent + f"{out}[p, {d}, j] += g0 + g1"]
         )
@@ -757,14 +761,10 @@ def source(d: int) -> str:
                           zero_acc_h=lines("s0_{c} = 0.0", 16) + "\n" + lines("s1_{c} = 0.0", 16),
                           body_g=products("gBv", 16), store_g=store("gA", 12),
                           body_h=products("hBv", 20), store_h=store("hA", 16))
+
     def row_products(out: str, indent: int, w0: str, w1: str) -> str:
         """forward_jac_rows' loop body: g0, g1 times B into s0_c, s1_c and their column sums into ``out[p, d]``."""
-        return "\n".join(
-            [" " * indent + f"b{c} = Bt[p, {c}, j]" for c in cs]
-            + [" " * indent + f"s0_{c} += g0 * b{c}" for c in cs]
-            + [" " * indent + f"s1_{c} += g1 * b{c}" for c in cs]
-            + [" " * indent + f"{out}[p, {d}, j] += g0 * {w0} + g1 * {w1}"]
-        )
+        return "\n".join(times_b(indent) + [" " * indent + f"{out}[p, {d}, j] += g0 * {w0} + g1 * {w1}"])
 
     forward_fields.update(body_rows=row_products("gBv", 16, "c0", "c1"),
                           store_rows=(lines("gA[p, i0, {c}] = c0 * s0_{c}", 12) + "\n" + " " * 12 + "if two:\n"
