@@ -39,7 +39,8 @@ def task_objective(task_name: str, options: dict[str, str], n: int, horizon: int
     learner = Pilco(spec, {}, seed)
     X, Y, log_ell, log_alpha, log_sigma = random_rollout_data(task, learner.layout, n, seed)
     posterior = full_posterior(X, Y, log_ell, log_alpha, log_sigma)
-    controller = learner.new_controller(torch.Generator().manual_seed(seed))
+    new_controller = getattr(learner, "new_controller", None) or learner._new_controller  # private before c2cb20b
+    controller = new_controller(torch.Generator().manual_seed(seed))
     return PolicyObjective(controller, posterior, learner.layout, spec.cost, spec.init_mean, spec.init_cov, horizon)
 
 
@@ -48,7 +49,10 @@ def random_rollout_data(task, layout, n: int, seed: int = 0):
     under ``layout``), and log-hyperparameters from the data's scales: ``log_ell (E, d)`` (input std),
     ``log_alpha (E,)`` (target std), ``log_sigma = log_alpha - log 100``."""
     from harness.interaction import Interaction
-    from plugins.pilco.policy import transitions
+    try:
+        from plugins.pilco.policy import transitions
+    except ImportError:  # checkouts before bd21f51 (the round's start, ea6efdd) kept it in the learner module
+        from plugins.pilco.learner import transitions
     from plugins.random_learner import UniformRandomPolicy
 
     spec = task.spec

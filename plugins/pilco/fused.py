@@ -60,6 +60,10 @@ The backward kernel is generated per input dimension ``d``: its inner loop runs 
 template for every ``d``) to a file in :func:`cache_dir` and imports it, so that numba's on-disk
 cache keeps the compiled code across processes: a machine compiles it once per ``d`` (seconds).
 
+numba's CPU target is set up for the CPU's widest vectors before the first kernel is compiled
+(:mod:`harness.vector_width`: on Intel's AVX-512 server CPUs LLVM's tuning would keep the loops at 256
+bits; 512 measured J + dJ 1.2-1.3x faster there, ``results/benchmarks/objective_gradient_vector_width.md``).
+
 The kernels are compiled with :class:`NoAliasCompiler`, which tells LLVM that their array
 arguments do not overlap (the drivers allocate every array a kernel writes). Without it LLVM must
 check at run time whether the ~20 rows a loop reads and writes overlap, gives up above 8 such
@@ -91,6 +95,12 @@ from numba.core.compiler import CompilerBase, DefaultPassBuilder
 from numba.core.compiler_machinery import FunctionPass, register_pass
 from numba.core.untyped_passes import TranslateByteCode
 from numba.extending import intrinsic
+
+from harness.vector_width import configure as _configure_vector_width
+
+#: 512-bit vectors where the CPU has AVX-512 (LLVM's tuning would keep the kernels at 256 bits on Intel's
+#: server CPUs); before the first ``@njit`` below, which creates numba's CPU target (:mod:`harness.vector_width`)
+VECTOR_WIDTH = _configure_vector_width()
 
 
 #: fast-math flags of the kernels: reassociation (vectorised sums) and contraction (FMA); no

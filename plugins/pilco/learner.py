@@ -216,6 +216,12 @@ class Pilco(Learner):
                     threads=self.options["threads"] or run_threads(), kernel=self.kernel, fresh_start_tol=self.fresh_start_tol,
                     grow_horizon_below=self.schedule.grow_below, grow_horizon_on=self.schedule.rule,
                     plan_with_noise=self.policy_noise_std is not None)
+        from plugins.pilco.moments import COMPILED_KERNELS
+
+        if self.kernel in COMPILED_KERNELS:  # the compiled kernels' SIMD width: "512", "default" or "too late"
+            from harness.vector_width import configure
+
+            used["vector_width"] = configure()
         return used
 
     @classmethod
