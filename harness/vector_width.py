@@ -4,8 +4,9 @@ numba compiles for the host CPU, but LLVM's tuning for Intel's AVX-512 server CP
 Emerald Rapids: the ``prefer-256-bit`` tuning flag) keeps its loop vectoriser at 256-bit vectors, a
 guard against the clock drop of early AVX-512 chips. The PILCO kernels (:mod:`plugins.pilco.fused`)
 are long loops of multiply-adds and an inlined ``exp`` over the basis points, where 512-bit vectors
-measured J + dJ 1.2-1.3x faster on an Emerald Rapids Xeon
-(``results/benchmarks/objective_gradient_vector_width.md``). :func:`configure` removes the preference
+measured J + dJ 1.21-1.22x faster on an Emerald Rapids Xeon at the double pendulum's and the unicycle's
+sizes, but 0.9x at cart-pole's n = 100 (probably its short rows: more of each is left to the loops'
+remainders; ``results/benchmarks/objective_gradient_vector_width*.md``). :func:`configure` removes the preference
 for numba's CPU target, which every numba function of the process shares; it must run before the
 first function is compiled (``plugins.pilco.fused`` and the unicycle's simulator call it before theirs).
 

@@ -62,7 +62,8 @@ cache keeps the compiled code across processes: a machine compiles it once per `
 
 numba's CPU target is set up for the CPU's widest vectors before the first kernel is compiled
 (:mod:`harness.vector_width`: on Intel's AVX-512 server CPUs LLVM's tuning would keep the loops at 256
-bits; 512 measured J + dJ 1.2-1.3x faster there, ``results/benchmarks/objective_gradient_vector_width.md``).
+bits; 512 measured J + dJ 1.21-1.22x faster there at the double pendulum's and the unicycle's sizes, 0.9x
+at cart-pole's n = 100, ``results/benchmarks/objective_gradient_vector_width.md``).
 
 The kernels are compiled with :class:`NoAliasCompiler`, which tells LLVM that their array
 arguments do not overlap (the drivers allocate every array a kernel writes). Without it LLVM must
