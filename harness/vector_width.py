@@ -71,8 +71,3 @@ def configure() -> str:
         config.CPU_FEATURES = f"{features},-{_PREFER_256}"
         _state = "512"
     return _state
-
-
-def active() -> str:
-    """What :func:`configure` decided (``"not configured"`` before its first call)."""
-    return _state or "not configured"

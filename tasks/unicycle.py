@@ -398,7 +398,7 @@ def unicycle_stepper(p: UnicycleParams, fall_angle: float, compiled: bool | None
 
         from harness.vector_width import configure
 
-        configure()  # numba's CPU target is shared: set its vector width before its first function (no fast-math here: same bits)
+        configure()  # numba's target is shared: its vector width before its first function (no fast-math: same bits)
         jit = numba.njit(cache=False)
     core = jit(_rk4_core(_falling_derivative(p, fall_angle, jit)))
 
