@@ -140,6 +140,7 @@ def test_the_blocked_predictive_mean_is_the_gps_mean(pendulum):
     a, b = x.clone().requires_grad_(True), x.clone().requires_grad_(True)
     predictive_mean(posterior, a).sum().backward()
     predict_latent(posterior, b)[0].sum().backward()  # its gradient in closed form
+    # the gradient's terms are products of three rounded factors (beta k, the difference, 1 / ell^2) before their sum: 4 n eps
     assert torch.all((a.grad - b.grad).abs() <= 4 * n * eps * grad_terms)
     assert (4 * n * eps * grad_terms).max() < 1e-5 * b.grad.abs().max()
 
