@@ -37,8 +37,8 @@ def multiply_adds(num_outputs: int, n: int, m: int, d: int) -> dict[str, float]:
 
     - four triangular solves with ``n`` right-hand sides (``V``, ``R``, ``h``, ``dNLL/dK_mn``), ``M^2 n / 2`` each;
     - two ``M x n x M`` products (``A = I + V Lambda^-1 V^T`` and the inner matrix), ``M^2 n`` each;
-    - the ``M x M`` work: ``dNLL/dK_mm`` (two products, ``M^3`` each), two Cholesky factors (``M^3 / 3`` each),
-      ``A^-1`` from its factor (``2 M^3 / 3``), ``L^-1`` (``M^3 / 6``);
+    - the ``M x M`` work: ``dNLL/dK_mm`` (two triangular solves with ``M`` right-hand sides, ``M^3 / 2`` each),
+      two Cholesky factors (``M^3 / 3`` each), ``A^-1`` from its factor (``2 M^3 / 3``);
     - the ``d``-wide products: the kernels' cross terms (``n M d``, ``M^2 d``) and the gradient to ``Z``
       through both kernels (``n M d``, ``M^2 d``).
 
@@ -46,7 +46,7 @@ def multiply_adds(num_outputs: int, n: int, m: int, d: int) -> dict[str, float]:
     per_output = {
         "triangular solves, n right-hand sides": 4 * m * m * n / 2,
         "M x n x M products": 2 * m * m * n,
-        "M x M products, factorisations, inverses": (2 + 2 / 3 + 2 / 3 + 1 / 6) * m**3,
+        "M x M solves, factorisations, inverses": (1 + 2 / 3 + 2 / 3) * m**3,
         "d-wide products": 2 * n * m * d + 2 * m * m * d,
     }
     return {k: v * num_outputs for k, v in per_output.items()}

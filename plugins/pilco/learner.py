@@ -141,6 +141,9 @@ class Pilco(Learner):
                "the reference allows 500 line searches)", low=0),
         Option("gp_hyper_subset", int, None, "when sparse, at most this many random data points train the GP "
                "hyperparameters (default: the sparse threshold; the reference uses all points)", low=1),
+        Option("gp_pseudo_subset", int, None, "when sparse, optimise the FITC pseudo-inputs on at most this many "
+               "random data points (the model then uses all of them): that stage's cost grows with the points "
+               "(default: all points)", low=1),
         Option("gp_refresh_pseudo", bool, False, "draw the FITC pseudo-inputs afresh from the data at every trial "
                "(default: continue from the previous trial's, as the reference does)"),
         Option("gp_restarts", int, 0, "extra GP training runs from perturbed starts (best kept)", low=0),
@@ -276,7 +279,7 @@ class Pilco(Learner):
         workdir = Path(tempfile.mkdtemp(prefix="pilco-"))
         model = GPModel(device=self.device, sparse_threshold=self.preset.sparse_threshold, num_pseudo=self.num_pseudo, max_evals_full=o["gp_max_evals"],
                         max_evals_fitc=o["gp_fitc_evals"], hyper_subset=o["gp_hyper_subset"],
-                        refresh_pseudo=o["gp_refresh_pseudo"])
+                        pseudo_subset=o["gp_pseudo_subset"], refresh_pseudo=o["gp_refresh_pseudo"])
         controller = self.new_controller(torch.Generator().manual_seed(self.seed))
         resumed = self._resume_state
         graph_warned = False

@@ -156,14 +156,16 @@ class SavedPilcoRun:
 
     def gp_model(self, **overrides: Any) -> GPModel:
         """An untrained :class:`GPModel` with the run's GP settings: its sparse threshold and pseudo-input count, and
-        the options ``gp_max_evals``, ``gp_fitc_evals``, ``gp_hyper_subset``, ``gp_refresh_pseudo`` as the run used
-        them (the learner's defaults where it logged none); ``overrides`` (``GPModel``'s keyword arguments) replace any."""
+        the options ``gp_max_evals``, ``gp_fitc_evals``, ``gp_hyper_subset``, ``gp_pseudo_subset``, ``gp_refresh_pseudo`` as
+        the run used them (the learner's defaults where it logged none); ``overrides`` (``GPModel``'s keyword arguments)
+        replace any."""
         options = self.learner_cls.option_set()
-        given = {name: self.option_used(name) for name in ("gp_max_evals", "gp_fitc_evals", "gp_hyper_subset", "gp_refresh_pseudo")}
+        given = {name: self.option_used(name)
+                 for name in ("gp_max_evals", "gp_fitc_evals", "gp_hyper_subset", "gp_pseudo_subset", "gp_refresh_pseudo")}
         o = options.resolve({name: v for name, v in given.items() if name in options and v not in (None, "None")})
         settings = {"sparse_threshold": int(self.settings["preset"]["sparse_threshold"]), "num_pseudo": int(self.settings["num_pseudo"]),
                     "max_evals_full": o["gp_max_evals"], "max_evals_fitc": o["gp_fitc_evals"], "hyper_subset": o["gp_hyper_subset"],
-                    "refresh_pseudo": o["gp_refresh_pseudo"]}
+                    "pseudo_subset": o["gp_pseudo_subset"], "refresh_pseudo": o["gp_refresh_pseudo"]}
         return GPModel(**{**settings, **overrides})
 
     def refit_model(self, trial: int, inputs, targets, seed: int | None = None) -> GPModel:

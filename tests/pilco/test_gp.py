@@ -513,6 +513,47 @@ def test_sparse_takes_over_above_threshold_and_optimises_pseudo_inputs():
     assert not torch.equal(fresh.hyperparameters.pseudo_inputs, report.hyperparameters.pseudo_inputs)
 
 
+def test_pseudo_inputs_train_on_a_random_subset_and_the_model_uses_all_points(monkeypatch):
+    """pseudo_subset=K: the pseudo-input optimisation sees K distinct training points (its cost grows with them);
+    the posterior and the reported FITC NLL are FITC's on all n points with the optimised pseudo-inputs; at or above n
+    it changes nothing (no extra random draw); below num_pseudo it is refused."""
+    import plugins.pilco.gp as gp_module
+
+    gen = torch.Generator().manual_seed(14)
+    x = torch.rand(100, 1, generator=gen, dtype=DT) * 6 - 3
+    y = torch.sin(2 * x) + 0.05 * torch.randn(100, 1, generator=gen, dtype=DT)
+    opts = dict(sparse_threshold=60, num_pseudo=12, max_evals_full=200, max_evals_fitc=60)
+    seen, seen_targets = [], []
+    original = gp_module.optimise_pseudo_inputs
+
+    def recording(inputs, targets, *args, **kwargs):
+        seen.append(inputs.clone())
+        seen_targets.append(targets.clone())
+        return original(inputs, targets, *args, **kwargs)
+
+    monkeypatch.setattr(gp_module, "optimise_pseudo_inputs", recording)
+    model = GPModel(**opts, pseudo_subset=40)
+    report = model.fit(x, y, seed=1)
+    assert seen[-1].shape == (40, 1) and torch.unique(seen[-1]).numel() == 40
+    assert all(bool((x == row).all(1).any()) for row in seen[-1])  # rows of the data
+    h = report.hyperparameters
+    args = (h.log_ell, h.log_alpha, h.log_sigma)
+    full = fitc_posterior(x, y, h.pseudo_inputs, *args)
+    torch.testing.assert_close(model.posterior().beta, full.beta, rtol=1e-12, atol=1e-12)
+    assert report.fitc_nll == pytest.approx(float(fitc_negative_log_likelihood(x, y, h.pseudo_inputs, *args).sum()), rel=1e-12)
+    on_subset = float(fitc_negative_log_likelihood(seen[-1], seen_targets[-1], h.pseudo_inputs, *args).sum())
+    assert report.fitc_nll < on_subset - 10.0  # not vacuous: 100 points' NLL, not the 40's (each point adds ~ -1.5 nats)
+
+    plain = GPModel(**opts).fit(x, y, seed=1)
+    assert seen[-1].shape == (100, 1)
+    at_n = GPModel(**opts, pseudo_subset=100).fit(x, y, seed=1)
+    assert seen[-1].shape == (100, 1)
+    torch.testing.assert_close(at_n.hyperparameters.pseudo_inputs, plain.hyperparameters.pseudo_inputs, rtol=0, atol=0)
+    assert not torch.equal(report.hyperparameters.pseudo_inputs, plain.hyperparameters.pseudo_inputs)
+    with pytest.raises(ValueError, match="pseudo_subset=8 is below num_pseudo=12"):
+        GPModel(**opts, pseudo_subset=8)
+
+
 @pytest.mark.parametrize("sparse", [False, True])
 def test_state_dict_round_trip(sparse):
     x, y = gp_sample(70, 2, [0.8, 1.2, 1.0, 0.5], [1.0, 0.5], 0.05, seed=15)

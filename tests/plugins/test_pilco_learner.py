@@ -70,7 +70,8 @@ def test_policy_search_budget_comes_from_the_task_preset():
 
 
 def test_gp_training_budgets_reach_the_dynamics_model(monkeypatch):
-    """gp_fitc_evals, gp_hyper_subset and gp_refresh_pseudo configure the GPModel the learner trains (FITC from 20 points here)."""
+    """gp_fitc_evals, gp_hyper_subset, gp_pseudo_subset and gp_refresh_pseudo configure the GPModel the learner trains
+    (FITC from 20 points here)."""
     import plugins.pilco.gp as gp_module
     from plugins.pilco.gp import GPModel
 
@@ -79,18 +80,20 @@ def test_gp_training_budgets_reach_the_dynamics_model(monkeypatch):
     class Recording(GPModel):
         def fit(self, *args, **kwargs):
             report = super().fit(*args, **kwargs)
-            fits.append((self.max_evals_fitc, self.hyper_subset, report.n_hyper_points, report.sparse, self.refresh_pseudo))
+            fits.append((self.max_evals_fitc, self.hyper_subset, self.pseudo_subset, report.n_hyper_points, report.sparse,
+                         self.refresh_pseudo))
             return report
 
     monkeypatch.setattr(gp_module, "GPModel", Recording)  # the learner imports it at first use
     options = {**TINY, "sparse_threshold": "20", "num_pseudo": "10", "gp_fitc_evals": "7", "gp_hyper_subset": "12",
-               "gp_refresh_pseudo": "true"}
+               "gp_pseudo_subset": "25", "gp_refresh_pseudo": "true"}
     run(RunConfig("pilco", "cartpole", seed=0, learner_options=options, task_options={"horizon": 15}, max_trials=2, eval_episodes=1),
         tracker=MemoryTracker())
     # trial 1: 15 points, a full GP on all of them; trial 2: 30 > 20, FITC, hyperparameters on 12 random points
-    assert fits == [(7, 12, 15, False, True), (7, 12, 12, True, True)]
+    assert fits == [(7, 12, 25, 15, False, True), (7, 12, 25, 12, True, True)]
     default = Pilco(CartPole().spec, {}, seed=0)
-    assert (default.options["gp_fitc_evals"], default.options["gp_hyper_subset"], default.options["gp_refresh_pseudo"]) == (100, None, False)
+    assert (default.options["gp_fitc_evals"], default.options["gp_hyper_subset"], default.options["gp_pseudo_subset"],
+            default.options["gp_refresh_pseudo"]) == (100, None, None, False)
 
 
 def test_gp_data_smoothed_trains_the_gp_again_on_the_smoothed_episodes(fit_inputs):

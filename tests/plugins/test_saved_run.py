@@ -162,6 +162,29 @@ def test_the_gp_budget_check_refits_with_the_runs_own_draw_and_gets_the_runs_gp_
     assert rows["100:8 from the run's trial-2 GP, its pseudo-inputs"][0] != own[0]  # seed 1's subset: another GP
 
 
+def test_the_pseudo_subset_check_refits_on_all_points_and_on_a_subset(tmp_path):
+    """benchmarks/pseudo_subset_check.py on a run that drew fresh pseudo-inputs every trial: one row per subset size
+    and seed, the FITC NLL on all training points (the script asserts it equals the fit's report), a subset's fit
+    another model; a run that kept its pseudo-inputs is refused with the option to look for."""
+    from benchmarks.pseudo_subset_check import main
+
+    options = {**TINY, "sparse_threshold": "10", "num_pseudo": "6", "gp_hyper_subset": "8", "initial_rollouts": "2",
+               "gp_refresh_pseudo": "true"}
+    uri, result = _stored_run(tmp_path, "cartpole", options, trials=4)
+    main([result.run_id, "--train-episodes", "4", "--test-episodes", "1", "--subsets", "0", "12", "--seeds", "0",
+          "--episodes", "2", "--tracking-uri", uri, "--out", str(tmp_path)])
+    text = (tmp_path / f"pseudo_subset_check_cartpole_{result.run_id[:8]}_k4.md").read_text()
+    rows = {line.split("|")[1].strip(): [c.strip() for c in line.split("|")[2:-1]] for line in text.splitlines()
+            if line.startswith("| ") and "seed" not in line}
+    assert set(rows) == {"all 48", "12 points"}  # 4 episodes of 12 steps
+    assert rows["all 48"][2] != rows["12 points"][2] and all(np.isfinite(float(c)) for c in rows["12 points"][1:])
+    assert "its **real** cost over 2 episodes" in text  # the later policy (trial 4) is scored
+    (tmp_path / "kept").mkdir()
+    kept, kept_run = _stored_run(tmp_path / "kept", "cartpole", {**options, "gp_refresh_pseudo": "false"}, trials=3)
+    with pytest.raises(SystemExit, match="gp_refresh_pseudo=True"):
+        main([kept_run.run_id, "--train-episodes", "3", "--test-episodes", "1", "--tracking-uri", kept, "--out", str(tmp_path)])
+
+
 def test_a_missing_artifact_or_a_non_pilco_run_is_named(stored):
     uri, pilco, other = stored
     with pytest.raises(TrackingError, match="no run 'no-such-run' in sqlite:///"):
