@@ -59,7 +59,6 @@ from harness.evaluation import Evaluator  # noqa: E402
 from plugins.pilco.gp import GPModel  # noqa: E402
 from plugins.pilco.policy import linear_policy_from_gain, transitions  # noqa: E402
 from plugins.pilco.sampling import sampled_costs  # noqa: E402
-from plugins.pilco.propagate import StateLayout  # noqa: E402
 from plugins.pilco.saved_run import SavedPilcoRun  # noqa: E402
 
 
@@ -147,7 +146,7 @@ def check(run: SavedPilcoRun, args: argparse.Namespace, argv: list[str] | None) 
     if args.warm_start and previous is None:
         sys.exit(f"--warm-start: run {args.run_id} saved no GP at trial {own_trial - 1} (the one before the first {k} episodes' trial)")
     params, task = run.params, run.task
-    layout = StateLayout(task.spec.state_dim, task.spec.angle_indices, tuple(settings["model_inputs"]), tuple(settings["policy_inputs"]))
+    layout = run.layout
     x_train, y_train = transitions(episodes[:k], layout)
     x_test, y_test = transitions(episodes[k:], layout)
     threshold = int(settings["preset"]["sparse_threshold"])

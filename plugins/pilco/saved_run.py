@@ -143,6 +143,12 @@ class SavedPilcoRun:
         return self.option_used("plan_with_noise") == "True"
 
     @property
+    def layout(self) -> StateLayout:
+        """The run's state layout: its task's state and angles, the GP's and the policy's inputs as its settings say."""
+        spec = self.task.spec
+        return StateLayout(spec.state_dim, spec.angle_indices, tuple(self.settings["model_inputs"]), tuple(self.settings["policy_inputs"]))
+
+    @property
     def initial_rollouts(self) -> int:
         """Random episodes before the first trial: trial K's GP is trained on the first
         ``initial_rollouts + K - 1`` episodes."""

@@ -164,7 +164,7 @@ def test_the_gp_budget_check_refits_with_the_runs_own_draw_and_gets_the_runs_gp_
 
 def test_the_pseudo_subset_check_refits_on_all_points_and_on_a_subset(tmp_path):
     """benchmarks/pseudo_subset_check.py on a run that drew fresh pseudo-inputs every trial: one row per subset size
-    and seed, the FITC NLL on all training points (the script asserts it equals the fit's report), a subset's fit
+    and seed (the FITC NLL is the fit's report, on all training points: tests/pilco/test_gp.py), a subset's fit
     another model; a run that kept its pseudo-inputs is refused with the option to look for."""
     from benchmarks.pseudo_subset_check import main
 
