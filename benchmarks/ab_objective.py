@@ -6,7 +6,10 @@ Usage::
         [--configs "double-pendulum n=400 H=60" "unicycle n=300 H=40" "cart-pole full n=100" ...] [--rounds 12]
 
 ``--a`` and ``--b`` are keyword arguments of :class:`plugins.pilco.moments.MomentMatchingGP`
-(``kernel=fused``, ``symmetric_pairs=false``, ``threads=2``), and ``moments=PATH``: take the class from
+(``kernel=fused``, ``symmetric_pairs=false``, ``threads=2``), ``torch_threads=K``: torch's intra-op threads while
+that side runs (default ``--torch-threads``; the learner gives torch all its threads with ``kernel=torch`` and one
+with a compiled kernel, which runs its own: ``--a kernel=torch,torch_threads=2 --b kernel=fused,threads=2`` compares
+the two as a two-core run uses them), and ``moments=PATH``: take the class from
 another checkout's ``plugins/pilco/moments.py`` (loaded under its own module name; what it imports
 comes from this checkout, so it must fit this checkout's kernels: for a change inside moment matching
 itself, e.g. ``--a moments=/tmp/old/plugins/pilco/moments.py``). Each configuration's objective is built
@@ -88,30 +91,44 @@ def moments_class(path: str | None):
     return type("OtherMomentMatchingGP", (MomentMatchingGP,), members)
 
 
-def measure(config: str, sides: dict[str, dict], rounds: int) -> dict:
-    """Times J + dJ of ``config`` under each side's ``MomentMatchingGP`` settings, interleaved."""
+def measure(config: str, sides: dict[str, dict], rounds: int, torch_threads: int = 1) -> dict:
+    """Times J + dJ of ``config`` under each side's ``MomentMatchingGP`` settings, interleaved (torch's
+    threads per side: its ``torch_threads``, else ``torch_threads``; the caller's setting is restored after)."""
+    before = torch.get_num_threads()
+    try:
+        return _measure(config, sides, rounds, torch_threads)
+    finally:
+        torch.set_num_threads(before)
+
+
+def _measure(config: str, sides: dict[str, dict], rounds: int, torch_threads: int) -> dict:
     obj = build(config)
     models = {}
     for name, kwargs in sides.items():
-        options = {k: v for k, v in kwargs.items() if k != "moments"}
+        options = {k: v for k, v in kwargs.items() if k not in ("moments", "torch_threads")}
         models[name] = moments_class(kwargs.get("moments"))(obj.posterior, **options)
     theta = obj.get_flat()
     results, times = {}, {name: [] for name in sides}
-    for name, model in models.items():  # warm-up (compiles the kernels) and each side's own result
-        obj.dynamics = model
+
+    def use(name: str) -> None:
+        obj.dynamics = models[name]
+        torch.set_num_threads(int(sides[name].get("torch_threads", torch_threads)))
+
+    for name in models:  # warm-up (compiles the kernels) and each side's own result
+        use(name)
         obj(theta)
         results[name] = obj(theta)
-    threaded = any(kwargs.get("threads", 1) > 1 for kwargs in sides.values())
+    threaded = wall_clock(sides, torch_threads)
     clock = time.perf_counter if threaded else time.process_time
     order = list(sides)
     for r in range(rounds):
         for name in order if r % 2 == 0 else order[::-1]:
-            obj.dynamics = models[name]
+            use(name)
             t0 = clock()
             obj(theta)
             times[name].append(clock() - t0)
     a, b = order
-    obj.dynamics = models[a]
+    use(a)
     nudged = theta * (1 + np.finfo(float).eps * np.random.default_rng(0).choice([-2.0, -1.0, 1.0, 2.0], theta.shape))
     J_ulp, g_ulp = obj(nudged)
     (J_a, g_a), (J_b, g_b) = results[a], results[b]
@@ -120,6 +137,11 @@ def measure(config: str, sides: dict[str, dict], rounds: int) -> dict:
         rel_J=abs(J_b - J_a) / abs(J_a), rel_dJ=float(np.linalg.norm(g_b - g_a) / np.linalg.norm(g_a)),
         ulp_J=abs(J_ulp - J_a) / abs(J_a), ulp_dJ=float(np.linalg.norm(g_ulp - g_a) / np.linalg.norm(g_a)), clock=clock.__name__,
     )
+
+
+def wall_clock(sides: dict[str, dict], torch_threads: int) -> bool:
+    """Whether either side runs more than one thread (then wall time, else CPU time, is compared)."""
+    return any(max(int(s.get("threads", 1)), int(s.get("torch_threads", torch_threads))) > 1 for s in sides.values())
 
 
 def main() -> None:
@@ -137,21 +159,21 @@ def main() -> None:
     load0 = load_average()
     rows = []
     for config in args.configs:
-        m = measure(config, sides, args.rounds)
+        m = measure(config, sides, args.rounds, args.torch_threads)
         print(f"{config:34s} a {m['median']['a']:8.1f} ms  b {m['median']['b']:8.1f} ms  a/b {m['median']['a'] / m['median']['b']:.3f}",
               flush=True)
         rows.append(
             f"| {config} | {m['median']['a']:.0f} / {m['median']['b']:.0f} | {m['minimum']['a']:.0f} / {m['minimum']['b']:.0f} "
             f"| {m['median']['a'] / m['median']['b']:.2f} | {m['rel_J']:.1e} | {m['rel_dJ']:.1e} | {m['ulp_J']:.1e}, {m['ulp_dJ']:.1e} |"
         )
-    clock = "wall" if any(s.get("threads", 1) > 1 for s in sides.values()) else "CPU"
+    clock = "wall" if wall_clock(sides, args.torch_threads) else "CPU"
     lines = [
         "# PILCO J + dJ, two moment-matching settings interleaved in one process",
         "",
         f"Command: `{command_line(__file__)}`  ",
         f"{machine_line(load0)}  ",
         f"a = `{args.a}`, b = `{args.b}` (`MomentMatchingGP` arguments); {args.rounds} J + dJ per side and configuration, "
-        f"alternating a b / b a; torch threads {args.torch_threads}; {clock} time.",
+        f"alternating a b / b a; torch threads {args.torch_threads} unless a side says; {clock} time.",
         "",
         f"| configuration | median {clock} ms a / b | min ms a / b | a / b | rel. diff J | rel. diff dJ (2-norm) | a's own change of J, dJ for theta +- 1-2 ulp |",
         "|---|---|---|---|---|---|---|",
