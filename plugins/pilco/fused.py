@@ -846,6 +846,20 @@ def kernels(d: int) -> ModuleType:
 
 _pools: dict[int, ThreadPoolExecutor] = {}
 
+#: the fewest entries of ``Q`` (pairs x n x n) one contraction must form before a second thread takes part:
+#: below it, handing pairs to a pool thread costs more than it saves. Measured with two threads against one
+#: (``benchmarks/ab_objective.py --a kernel=fused --b kernel=fused,threads=2``): cart-pole n = 100 (10 pairs,
+#: 0.1 M entries) 0.88x on Zen 1 and 0.86-0.90x on Zen 5; n = 300 (0.9 M) 1.09x and 0.85-1.10x; the double pendulum
+#: (21 pairs, n = 400: 3.4 M) and the unicycle (55 pairs, n = 300: 5.0 M) 1.14-1.56x
+#: (``results/benchmarks/ab_objective_threads_*.md``)
+MIN_PARALLEL_WORK = 500_000
+
+
+def useful_threads(threads: int, num_pairs: int, n: int, min_work: int = MIN_PARALLEL_WORK) -> int:
+    """``threads``, or 1 where a contraction of ``num_pairs`` pairs over ``n`` basis points forms fewer than
+    ``min_work`` entries of ``Q`` (:data:`MIN_PARALLEL_WORK`)."""
+    return int(threads) if num_pairs * n * n >= min_work else 1
+
 
 def _run(groups: Sequence[tuple[int, int]], work) -> None:
     """``work(g, start, stop)`` for every group of pairs: inline for one group, else on a pool of
@@ -924,8 +938,12 @@ def _symmetric_jacobian(j: dict, q_wr: np.ndarray, M: np.ndarray, first: int, la
 
 
 def forward(left, right, w_left, w_right, inv_k, workspace, out=None, threads: int = 1, block=1,
-            inline: bool = False, jacobian: dict | None = None, symmetric=None, columns: bool = True):
+            inline: bool = False, jacobian: dict | None = None, symmetric=None, columns: bool = True,
+            min_parallel_work: int = MIN_PARALLEL_WORK):
     """``quad (P,)``, ``trace (E',)``, ``Q w_right (P, n)``; ``Q`` into ``out`` (kept) if given.
+
+    ``threads`` pair groups run side by side where the contraction forms at least ``min_parallel_work``
+    entries of ``Q`` (:func:`useful_threads`), else one.
 
     ``left, right (P, n, d + 2)`` with ``Q_p = exp(left_p right_p^T)``, formed ``block`` pairs at a
     time (a number or a function ``(n, itemsize) -> pairs``) into ``out`` or the workspace's scratch;
@@ -948,7 +966,7 @@ def forward(left, right, w_left, w_right, inv_k, workspace, out=None, threads: i
     quad, trace, q_wr = np.empty(p), np.empty(e), np.empty((p, n))
     wl, wr, ik = _numpy(w_left), _numpy(w_right), _numpy(inv_k)
     nsym = 0 if symmetric is None or not inline else int(symmetric.shape[0])
-    groups = pair_groups(p, e, threads, nsym)
+    groups = pair_groups(p, e, useful_threads(threads, p, n, min_parallel_work), nsym)
     size = _block_size(block, n, left.element_size())
     if inline:
         M = _numpy(symmetric) if nsym else None
@@ -999,9 +1017,11 @@ def forward(left, right, w_left, w_right, inv_k, workspace, out=None, threads: i
 
 
 def backward(left, right, w_left, w_right, inv_k, q_wr, g_quad, g_trace, workspace, needs, Q=None,
-             threads: int = 1, block=1, inline: bool = False, jacobian: dict | None = None):
+             threads: int = 1, block=1, inline: bool = False, jacobian: dict | None = None,
+             min_parallel_work: int = MIN_PARALLEL_WORK):
     """Gradients wrt ``(left, right, w_left, w_right, inv_k)`` as ``moments._contract_backward``
     returns them (``None`` where not needed; the constant columns of ``left``/``right`` get 0).
+    ``threads`` and ``min_parallel_work`` as in :func:`forward`.
 
     ``Q``: the forward pass's kept ``Q (P, n, n)``, or ``None`` to recompute it: ``block`` pairs at a
     time into the workspace's scratch or, with ``inline``, two rows at a time inside the compiled loop
@@ -1030,7 +1050,7 @@ def backward(left, right, w_left, w_right, inv_k, q_wr, g_quad, g_trace, workspa
         A = np.ascontiguousarray(_numpy(left)[..., :d])  # numba's loops over strided arrays are ~3x slower
         Bt = _numpy(right[..., :d].transpose(1, 2).contiguous())
         gA, gu, gBv, gwr = np.empty((p, n, d)), np.empty((p, n)), np.empty((p, d + 1, n)), np.empty((p, n))
-        groups = pair_groups(p, e, threads)
+        groups = pair_groups(p, e, useful_threads(threads, p, n, min_parallel_work))
         size = _block_size(block, n, left.element_size())
         if inline and Q is None:
             L, Rt = _numpy(left.contiguous()), _numpy(right.mT.contiguous())

@@ -353,7 +353,8 @@ class MomentMatchingGP:
     """
 
     def __init__(self, posterior: GPPosterior, kernel: str | None = None, threads: int = 1,
-                 symmetric_pairs: bool = True, compiled_glue: bool = True, lean_jacobian: bool = True) -> None:
+                 symmetric_pairs: bool = True, compiled_glue: bool = True, lean_jacobian: bool = True,
+                 min_parallel_work: int | None = None) -> None:
         device = posterior.beta.device
         self.kernel = resolve_kernel(kernel, device)
         #: with the fused kernel, form the kernel's factors in one compiled sweep (:meth:`_compiled_factors`)
@@ -374,10 +375,13 @@ class MomentMatchingGP:
             from plugins.pilco import fused
 
             inline = self.kernel == "fused"
-            self._contract_forward = functools.partial(fused.forward, threads=self.threads, block=_pair_block_size,
-                                                       inline=inline)
-            self._contract_backward = functools.partial(fused.backward, threads=self.threads, block=_pair_block_size,
-                                                        inline=inline)
+            #: with a compiled kernel, the fewest entries of Q a contraction forms before its pairs are split
+            #: over ``threads`` threads (default ``fused.MIN_PARALLEL_WORK``; 0: always, as before)
+            self.min_parallel_work = fused.MIN_PARALLEL_WORK if min_parallel_work is None else int(min_parallel_work)
+            options = dict(threads=self.threads, block=_pair_block_size, inline=inline,
+                           min_parallel_work=self.min_parallel_work)
+            self._contract_forward = functools.partial(fused.forward, **options)
+            self._contract_backward = functools.partial(fused.backward, **options)
         else:
             self._contract_forward, self._contract_backward = _contract_forward, _contract_backward
         self.posterior = posterior

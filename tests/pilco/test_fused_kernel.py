@@ -137,9 +137,9 @@ def test_results_do_not_depend_on_the_number_of_threads(threads, inline, saved) 
     def both(t):
         jacobian = {} if saved else None
         quad, trace, q_wr = fused.forward(left, right, wl, wr, inv_k, moments._Workspace(), threads=t, inline=inline,
-                                          jacobian=jacobian)
+                                          jacobian=jacobian, min_parallel_work=0)
         grads = fused.backward(left, right, wl, wr, inv_k, q_wr, g_quad, g_trace, moments._Workspace(), needs, threads=t,
-                               inline=inline, jacobian=jacobian)
+                               inline=inline, jacobian=jacobian, min_parallel_work=0)
         return (quad, trace, q_wr, *grads[:4])
 
     for a, b in zip(both(1), both(threads)):
@@ -197,13 +197,41 @@ def test_symmetric_pairs_do_not_depend_on_the_number_of_threads(threads) -> None
     def both(t):
         jacobian = {}
         quad, trace, q_wr = fused.forward(left, right, wl, wr, inv_k, moments._Workspace(), threads=t, inline=True,
-                                          jacobian=jacobian, symmetric=M)
+                                          jacobian=jacobian, symmetric=M, min_parallel_work=0)
         grads = fused.backward(left, right, wl, wr, inv_k, q_wr, g_quad, g_trace, moments._Workspace(), needs,
-                               threads=t, inline=True, jacobian=jacobian)
+                               threads=t, inline=True, jacobian=jacobian, min_parallel_work=0)
         return (quad, trace, q_wr, *grads[:4])
 
     for a, b in zip(both(1), both(threads)):
         assert torch.equal(a, b)
+
+
+def test_small_contractions_run_on_one_thread(monkeypatch) -> None:
+    """Below ``min_parallel_work`` entries of ``Q`` the pairs are not split (no pool thread is asked), at or
+    above it they are, with the same result; ``MomentMatchingGP`` passes its own threshold on."""
+    from plugins.pilco.moments import MomentMatchingGP
+
+    assert fused.useful_threads(2, 10, 100) == 1 and fused.useful_threads(2, 21, 400) == 2
+    assert fused.useful_threads(3, 10, 100, min_work=10 * 100 * 100) == 3 and fused.useful_threads(3, 10, 100, 0) == 3
+    left, right, wl, wr, inv_k, g_quad, g_trace = _contraction_inputs(4, 21, 5, seed=7)
+    p, n = left.shape[:2]
+    asked = []
+    monkeypatch.setattr(fused, "pair_groups", lambda *a, _real=fused.pair_groups: asked.append(a[2]) or _real(*a))
+    results = []
+    for limit in (p * n * n + 1, p * n * n):
+        jacobian = {}
+        out = fused.forward(left, right, wl, wr, inv_k, moments._Workspace(), threads=2, inline=True,
+                            jacobian=jacobian, min_parallel_work=limit)
+        grads = fused.backward(left, right, wl, wr, inv_k, out[2], g_quad, g_trace, moments._Workspace(),
+                               (True, True, True, True, False), threads=2, inline=True, jacobian=jacobian,
+                               min_parallel_work=limit)
+        results.append((*out, *grads[:4]))
+    assert asked == [1, 2]  # forward's split (backward with a saved jacobian forms no Q and needs none)
+    for a, b in zip(*results):
+        assert torch.equal(a, b)
+    gp = _task_objective("cartpole", {}, 30, 5).posterior
+    assert MomentMatchingGP(gp, kernel="fused", threads=2).min_parallel_work == fused.MIN_PARALLEL_WORK
+    assert MomentMatchingGP(gp, kernel="fused", threads=2, min_parallel_work=0)._contract_forward.keywords["min_parallel_work"] == 0
 
 
 @pytest.mark.parametrize("pairs,traced,threads,symmetric", [(21, 6, 2, 0), (55, 10, 2, 0), (10, 4, 3, 0), (1, 1, 2, 0),
@@ -283,7 +311,7 @@ def test_objective_is_the_same_with_either_kernel(task, options, n, horizon) -> 
     theta = obj.get_flat()
     results = {}
     for kernel, threads in (("torch", 1), ("numba", 1), ("numba", 2), ("fused", 1), ("fused", 2)):
-        obj.dynamics = MomentMatchingGP(obj.posterior, kernel=kernel, threads=threads)
+        obj.dynamics = MomentMatchingGP(obj.posterior, kernel=kernel, threads=threads, min_parallel_work=0)
         results[kernel, threads] = obj(theta)
     (J_t, g_t), *compiled = results.values()
     nudged = theta * (1 + np.finfo(float).eps * np.random.default_rng(0).choice([-2.0, -1.0, 1.0, 2.0], theta.shape))
