@@ -111,6 +111,9 @@ class McPilco(Learner):
                low=0.0, high=0.9),
         Option("dropout_step", float, 0.125, "dropout reduction when the search stalls (paper: 0.125)", low=0.0, high=1.0),
         Option("lr_decay", float, 0.5, "learning-rate factor at each dropout reduction", low=0.0, high=1.0),
+        Option("keep", str, "last", "the policy a search hands over: last (the last Adam step's, the paper's) or best (of the "
+               "start and each window's end, the one a fixed set of particles rates lowest: a search that ends above where it "
+               "started hands over its start)", choices=("last", "best")),
         Option("window", int, 100, "steps per window of the monitoring signal (mean estimate)", low=1),
         Option("min_improvement", float, 0.01, "a window mean at least this much (relative) below the one before is progress", low=0.0),
         Option("threads", int, None, "CPU threads (default: the harness's choice; harness.threads)", low=1, execution=True),
@@ -209,7 +212,8 @@ class McPilco(Learner):
 
         search = optimise_particles(objective, max_steps=o["max_steps"], lr=o["lr"], dropout=o["dropout"],
                                     dropout_step=o["dropout_step"], lr_decay=o["lr_decay"], window=o["window"],
-                                    min_improvement=o["min_improvement"], seed=1000 * self.seed + trial, on_step=shown)
+                                    min_improvement=o["min_improvement"], seed=1000 * self.seed + trial, keep=o["keep"],
+                                    on_step=shown)
         return objective, search
 
     @classmethod
@@ -288,6 +292,7 @@ class McPilco(Learner):
             self.metrics = {
                 "n_data": float(fit.n_points), "gp_sparse": float(fit.sparse), "gp_nll": fit.nll,
                 "model_train_seconds": fit.seconds, "J_before": search.J_before, "J_after": search.J_after,
+                "J_last": search.J_last, "kept_step": float(search.kept_step),
                 "policy_opt_seconds": search.seconds, "policy_steps": float(search.steps),
                 "policy_skipped_steps": float(search.skipped), "dropout_reductions": float(search.reductions),
                 "final_dropout": search.final_dropout, "planning_horizon": float(self.horizon), "planning_basis": float(posterior.inputs.shape[0]),

@@ -7,7 +7,11 @@ instead of a filtered one): when the mean of the last ``window`` estimates is no
 ``min_improvement`` (relative) below the mean of the window before, the dropout probability drops by
 ``dropout_step`` and the learning rate is multiplied by ``lr_decay``; once dropout is 0 and
 progress stalls again, or after ``max_steps``, the search ends. The parameters at the end are
-kept (the estimates are too noisy to pick a "best" step).
+kept (``keep="last"``, the paper's rule); with ``keep="best"`` the search keeps, of its start, the
+end of each window and its end, the parameters whose estimate on one fixed set of particles (no
+dropout, the random numbers of ``J_before``/``J_after``) is lowest: common random numbers make those
+estimates comparable, which single steps' noisy estimates are not. It costs one estimate without
+gradient per window.
 """
 
 from __future__ import annotations
@@ -29,7 +33,9 @@ class ParticleSearchResult:
 
     Attributes:
         J_before, J_after: particle estimates (no dropout, the same fresh particles) at the start and
-            the end.
+            at the parameters kept.
+        J_last: the same estimate at the last step's parameters (= ``J_after`` with ``keep="last"``).
+        kept_step: the Adam step whose parameters were kept (0: the start; ``steps``: the last).
         steps: Adam steps taken; skipped: steps whose estimate was not finite (no update).
         reductions: dropout reductions; final_dropout, final_lr: their values at the end.
         seconds: wall time; trace: window means of the estimates (with dropout), for plots.
@@ -37,6 +43,8 @@ class ParticleSearchResult:
 
     J_before: float
     J_after: float
+    J_last: float
+    kept_step: int
     steps: int
     skipped: int
     reductions: int
@@ -47,9 +55,11 @@ class ParticleSearchResult:
 
 
 def optimise_particles(objective: ParticleObjective, *, max_steps: int, lr: float, dropout: float, dropout_step: float,
-                       lr_decay: float, window: int, min_improvement: float, seed: int,
+                       lr_decay: float, window: int, min_improvement: float, seed: int, keep: str = "last",
                        on_step: Callable[[int, float, float], None] | None = None) -> ParticleSearchResult:
-    """Minimise ``J_hat`` over the controller's parameters (left at the final values).
+    """Minimise ``J_hat`` over the controller's parameters, left at the last step's values
+    (``keep="last"``) or at those of the start or a window's end that the fixed particles rate lowest
+    (``keep="best"``).
 
     ``on_step(step, window mean of J_hat or nan before the first window, dropout)``, if given, is
     called after every Adam step (for progress)."""
@@ -61,7 +71,17 @@ def optimise_particles(objective: ParticleObjective, *, max_steps: int, lr: floa
             value = float(objective.value(torch.Generator().manual_seed(int(seed) + 1)))
         return value if math.isfinite(value) else math.inf
 
+    if keep not in ("last", "best"):
+        raise ValueError(f"keep must be 'last' or 'best', got {keep!r}")
     J_before = checked()
+    best = (J_before, 0, [q.detach().clone() for q in params])  # (estimate, step, parameters)
+
+    def candidate(step: int) -> None:  # keep="best": the parameters after `step` if the fixed particles rate them lower
+        nonlocal best
+        value = checked()
+        if value < best[0]:
+            best = (value, step, [q.detach().clone() for q in params])
+
     opt = torch.optim.Adam(params, lr=lr)
     gen = torch.Generator().manual_seed(int(seed))
     estimates: list[float] = []
@@ -79,6 +99,8 @@ def optimise_particles(objective: ParticleObjective, *, max_steps: int, lr: floa
         estimates.append(J)
         if len(estimates) % window == 0:
             trace.append(float(np.mean(estimates[-window:])))
+            if keep == "best":
+                candidate(steps)
             if len(trace) >= 2 and trace[-2] - trace[-1] < min_improvement * abs(trace[-2]):
                 if p <= 0.0:
                     break
@@ -88,6 +110,13 @@ def optimise_particles(objective: ParticleObjective, *, max_steps: int, lr: floa
                     group["lr"] = rate
         if on_step is not None:
             on_step(steps, trace[-1] if trace else math.nan, p)
-    return ParticleSearchResult(J_before=J_before, J_after=checked(), steps=steps,
+    J_last = checked()
+    J_after, kept_step = J_last, steps
+    if keep == "best" and not J_last <= best[0]:  # a tie keeps the last
+        J_after, kept_step = best[0], best[1]
+        with torch.no_grad():
+            for q, b in zip(params, best[2]):
+                q.copy_(b)
+    return ParticleSearchResult(J_before=J_before, J_after=J_after, J_last=J_last, kept_step=kept_step, steps=steps,
                                 skipped=skipped, reductions=reductions, final_dropout=p, final_lr=rate,
                                 seconds=time.perf_counter() - start, trace=trace)

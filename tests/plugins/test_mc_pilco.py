@@ -157,6 +157,34 @@ def test_optimiser_lowers_the_estimate_and_reduces_dropout_when_it_stalls() -> N
     assert len(result.trace) == (result.steps - result.skipped) // 10
 
 
+@pytest.mark.parametrize("lr, kept", [(0.2, "a window's end"), (0.5, "the start")])
+def test_keep_best_hands_over_the_parameters_the_fixed_particles_rate_lowest(lr, kept) -> None:
+    """keep="best" takes the same Adam steps as keep="last" (its checks draw from their own generator)
+    and hands over, of the start, each window's end and the end, the parameters with the lowest
+    estimate on the fixed particles of J_before/J_after: each candidate is re-estimated here with
+    the same random numbers. At these learning rates the last step's parameters rate worse than an
+    earlier window's (lr 0.2) or than the start (lr 0.5): a search that ended above where it began."""
+    kwargs = dict(max_steps=200, lr=lr, dropout=0.25, dropout_step=0.125, lr_decay=0.5, window=10, min_improvement=0.01,
+                  seed=0)
+    last_obj = _objective("rbf-two-controls")
+    last = optimise_particles(_particles(last_obj, 64, 8), **kwargs)
+    assert last.J_after == last.J_last and last.kept_step == last.steps
+    obj = _objective("rbf-two-controls")
+    start = [q.detach().clone() for q in obj.controller.parameters()]
+    particles = _particles(obj, 64, 8)
+    best = optimise_particles(particles, keep="best", **kwargs)
+    assert best.steps == last.steps and best.J_before == last.J_before and best.J_last == last.J_last
+    assert best.J_after < best.J_last and best.J_after <= best.J_before
+    assert (0 < best.kept_step < best.steps) if kept == "a window's end" else best.kept_step == 0
+    with torch.no_grad():  # the handed-over parameters are the kept ones: the same estimate again
+        assert float(particles.value(torch.Generator().manual_seed(1))) == best.J_after
+    if kept == "the start":
+        for q, q0 in zip(obj.controller.parameters(), start):
+            assert torch.equal(q, q0)
+    with pytest.raises(ValueError, match="keep must be 'last' or 'best'"):
+        optimise_particles(particles, keep="first", **kwargs)
+
+
 class TestMcPilcoConformance(LearnerConformance):
     learner_cls = McPilco
     task_name = "cartpole"
@@ -178,7 +206,7 @@ def test_same_seed_same_run_and_resume_equals_uninterrupted() -> None:
     assert len(steps) == int(dict(tracker.metrics["policy_steps"])[1])
     assert steps[0].startswith("policy search: Adam step 1/12, dropout")
     assert "J_hat" in steps[3] and "(mean of the last 4)" in steps[3] and "J_hat" not in steps[2]
-    assert {"J_before", "J_after", "policy_steps", "final_dropout"} <= set(tracker.metrics)
+    assert {"J_before", "J_after", "J_last", "kept_step", "policy_steps", "final_dropout"} <= set(tracker.metrics)
     interrupted = InterruptAt(2)
     with pytest.raises(KeyboardInterrupt):
         run(config, tracker=interrupted)
