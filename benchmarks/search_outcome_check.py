@@ -31,23 +31,30 @@ from harness.store.client import Store  # noqa: E402
 from harness.store.reader import RunReader  # noqa: E402
 
 
-def searches_above_start(run: RunReader, margin: float) -> list[tuple[int, float]]:
-    """``(trial, J_after - J_before)`` of the run's trials whose search ended more than ``margin`` above its start."""
+def search_changes(run: RunReader) -> dict[int, float]:
+    """``{trial: J_after - J_before}`` of the run's finished searches, in trial order."""
     before, after = run.history("J_before"), run.history("J_after")
-    return [(t, after[t] - before[t]) for t in sorted(before) if t in after and after[t] > before[t] + margin]
+    return {t: after[t] - before[t] for t in sorted(before) if t in after}
+
+
+def searches_above_start(changes: dict[int, float], margin: float) -> list[tuple[int, float]]:
+    """``(trial, J_after - J_before)`` of the searches (:func:`search_changes`) that ended more than ``margin`` above their start."""
+    return [(t, d) for t, d in changes.items() if d > margin]
 
 
 def run_row(run: RunReader, margin: float) -> dict:
-    """One run's row: seed, trials, evaluation costs, the searches that ended above their start, state."""
+    """One run's row: seed, trials, evaluation costs, its searches and those that ended above their start, state."""
     costs = run.history("eval_cost")
     trials = len(costs)
     if run.status == "FINISHED":
-        state = f"solved at {run.time_to_success:.0f} s" if run.solved else f"unsolved ({run.metric('interaction_seconds'):.0f} s)"
+        state = f"solved at {run.time_to_success:.0f} s" if run.solved else f"unsolved ({run.reached('interaction_seconds'):.0f} s)"
     else:
         state = f"{run.status.lower()} after trial {trials}"
+    changes = search_changes(run)
     return {"seed": run.cell[2] if run.cell else None, "run": run.run_id[:8], "trials": trials,
-            "costs": " ".join(f"{costs[t]:.1f}" for t in sorted(costs)), "above": searches_above_start(run, margin),
-            "state": state, "solved": run.solved, "finished": run.status == "FINISHED"}
+            "costs": " ".join(f"{costs[t]:.1f}" for t in sorted(costs)), "searches": len(changes),
+            "above": searches_above_start(changes, margin), "state": state, "solved": run.solved,
+            "finished": run.status == "FINISHED"}
 
 
 def main(argv: list[str] | None = None) -> None:
@@ -70,7 +77,7 @@ def main(argv: list[str] | None = None) -> None:
         above = ", ".join(f"{t}: +{d:.1f}" for t, d in row["above"]) or "-"
         lines.append(f"| {row['seed']} | `{row['run']}` | {row['trials']} | {row['costs']} | {above} | {row['state']} |")
     finished = [r for r in rows if r["finished"]]
-    total = sum(len(run.history("J_after")) for run in runs)
+    total = sum(r["searches"] for r in rows)
     count = lambda rs: sum(len(r["above"]) for r in rs)  # noqa: E731
     solved = [r for r in finished if r["solved"]]
     unsolved = [r for r in finished if not r["solved"]]

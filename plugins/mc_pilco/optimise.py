@@ -74,7 +74,7 @@ def optimise_particles(objective: ParticleObjective, *, max_steps: int, lr: floa
     if keep not in ("last", "best"):
         raise ValueError(f"keep must be 'last' or 'best', got {keep!r}")
     J_before = checked()
-    best = (J_before, 0, [q.detach().clone() for q in params])  # (estimate, step, parameters)
+    best = (J_before, 0, [q.detach().clone() for q in params]) if keep == "best" else None  # (estimate, step, parameters)
 
     def candidate(step: int) -> None:  # keep="best": the parameters after `step` if the fixed particles rate them lower
         nonlocal best
