@@ -52,7 +52,7 @@ def parse_variant(text: str) -> dict[str, str]:
 
 def stored_start(run_id: str, trial: int, tracking_uri: str | None):
     """``(run configuration, data episodes, warm-start hyperparameters or None, start controller state or
-    None, stored J_after of the trial)`` of a stored ``mc-pilco`` run at trial ``trial``; the configuration
+    None, stored J_after of the trial, the trial's planning horizon in steps or None where not logged)`` of a stored ``mc-pilco`` run at trial ``trial``; the configuration
     is the checkpoint's own (:func:`~harness.runner.config_from_identity`)."""
     from harness.checkpoint import checkpoint_name, load_checkpoint
     from harness.runner import config_from_identity
@@ -69,15 +69,20 @@ def stored_start(run_id: str, trial: int, tracking_uri: str | None):
     after = checkpoint(trial)
     before = checkpoint(trial - 1) if trial > 1 else None
     stored = reader.history("J_after").get(trial)
+    horizon = reader.history("planning_horizon").get(trial)
     reader.close()
     return (config_from_identity(after.identity), after.interaction["episodes"],
-            before.learner["hyperparameters"] if before else None, before.learner["controller"] if before else None, stored)
+            before.learner["hyperparameters"] if before else None, before.learner["controller"] if before else None, stored,
+            None if horizon is None else int(horizon))
 
 
-def search_variant(config: RunConfig, overrides: dict[str, str], episodes, hyperparameters, controller_state, trial: int):
+def search_variant(config: RunConfig, overrides: dict[str, str], episodes, hyperparameters, controller_state, trial: int,
+                   horizon: int | None = None):
     """One variant's search from the stored start, with the run's learner as the runner built it
     (:func:`~harness.runner.new_learner`: its options with ``overrides`` replaced, on the CPU; its derived
-    seed): ``(search result, policy, planning cost in words)``."""
+    seed), planning over ``horizon`` steps (the trial's logged horizon, which a growing schedule may have
+    raised above the option's start) unless the variant sets ``planning_horizon``: ``(search result,
+    policy, planning cost in words)``."""
     from harness.runner import new_learner, prepare
     from harness.task import Episode
     from plugins.pilco.gp import GPHyperparameters
@@ -85,6 +90,8 @@ def search_variant(config: RunConfig, overrides: dict[str, str], episodes, hyper
 
     options = {**config.learner_options, **overrides, "device": "cpu"}
     learner = new_learner(prepare(dataclasses.replace(config, learner_options=options)))
+    if horizon is not None and "planning_horizon" not in overrides:
+        learner.schedule.horizon = horizon
     model = learner.new_model()
     x, y = transitions([Episode(**ep) for ep in episodes], learner.layout)
     warm = GPHyperparameters.from_dict(hyperparameters) if hyperparameters is not None else None
@@ -108,37 +115,39 @@ def main(argv: list[str] | None = None) -> None:
     torch.set_num_threads(1)
     start = time.perf_counter()
     variants = [(text, parse_variant(text)) for text in args.variants]
-    config, episodes, hyperparameters, controller_state, stored = stored_start(args.run, args.trial, args.tracking_uri)
+    config, episodes, hyperparameters, controller_state, stored, horizon = stored_start(args.run, args.trial, args.tracking_uri)
     task, seed = prepare(config).task, derive_seeds(config.seed)["learner"]
     evaluator = Evaluator(task, n_episodes=args.episodes, seed=args.seed)
     rows = []
     for text, overrides in variants:
-        search, policy, cost_text = search_variant(config, overrides, episodes, hyperparameters, controller_state, args.trial)
+        search, policy, cost_text = search_variant(config, overrides, episodes, hyperparameters, controller_state, args.trial,
+                                                  horizon)
         result = evaluator(policy)
         successes = round(result.success_rate * args.episodes)
         rows.append((text or "the run's options", search, cost_text, result.mean_cost, successes))
         print(f"{text or 'run':40s} steps {search.steps:5d} J {search.J_before:.2f} -> {search.J_after:.2f} "
-              f"real cost {result.mean_cost:.2f} success {successes}/{args.episodes} ({search.seconds:.0f} s)", flush=True)
+              f"(last {search.J_last:.2f}, kept step {search.kept_step}) real cost {result.mean_cost:.2f} success {successes}/{args.episodes} ({search.seconds:.0f} s)", flush=True)
     evaluator.close()
 
     run_options = ", ".join(f"{k}={v}" for k, v in sorted(config.learner_options.items())) or "defaults"
     repeat = next((r for r in rows if r[0] == "the run's options"), None)
+    horizon_text = horizon if horizon is not None else "the options'"
     lines = [
         f"# mc-pilco's policy search redone: run `{args.run[:8]}`, trial {args.trial}", "",
         f"Command: `{command_line(__file__, argv, env='OMP_NUM_THREADS=1')}`  ",
         f"Run: {task.spec.name}, learner seed {seed}, options {run_options}. The search starts from the controller of trial "
-        f"{args.trial - 1 if args.trial > 1 else 'none (the initial one)'} on the GP fitted to the {len(episodes)} episodes recorded "
+        f"{args.trial - 1 if args.trial > 1 else 'none (the initial one)'}, over {horizon_text} steps, on the GP fitted to the {len(episodes)} episodes recorded "
         f"before trial {args.trial}'s hand-over, as the run did; the run's random numbers. Real: {args.episodes} episodes of "
         f"the task (seed {args.seed}), its own cost and success rule. One thread, wall time on a shared machine.", "",
     ]
     if repeat is not None and stored is not None:
         lines += [f"The run's own search repeated: J after {repeat[1].J_after:.6f}, stored {stored:.6f}.", ""]
-    lines += ["| variant (learner options over the run's) | planning cost | Adam steps | dropout reductions | J_hat before -> after "
+    lines += ["| variant (learner options over the run's) | planning cost | Adam steps | dropout reductions | J_hat before -> after (last step's; kept step) "
               "| search s | real cost (mean) | real success (95 % CI) |", "|---|---|---|---|---|---|---|---|"]
     for text, search, cost_text, cost, successes in rows:
         low, high = wilson_interval(successes, args.episodes)
         lines.append(f"| {text} | {cost_text} | {search.steps} | {search.reductions} | {search.J_before:.2f} -> {search.J_after:.2f} "
-                     f"| {search.seconds:.0f} | {cost:.2f} | {successes}/{args.episodes} ({100 * low:.0f}-{100 * high:.0f} %) |")
+                     f"({search.J_last:.2f}; {search.kept_step}) | {search.seconds:.0f} | {cost:.2f} | {successes}/{args.episodes} ({100 * low:.0f}-{100 * high:.0f} %) |")
     lines += ["", f"Wall time {time.perf_counter() - start:.0f} s."]
     write_report(lines, args.out)
 

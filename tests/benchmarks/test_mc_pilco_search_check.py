@@ -15,10 +15,14 @@ def test_the_runs_own_search_is_repeated_exactly_and_a_variant_changes_only_its_
     from harness.tracking import MlflowTracker, default_tracking_uri
 
     uri = default_tracking_uri(tmp_path)
-    result = run(RunConfig("mc-pilco", "cartpole", seed=4, learner_options=TINY, task_options={"horizon": 10}, max_trials=3,
+    # a horizon that grows 4 -> 8 before trial 2's search (any real episode is below 1000 per step): the
+    # repeat must plan over the trial's grown horizon, not the option's start, to end where the run did
+    growing = TINY | {"planning_horizon": "4", "grow_horizon_below": "1000", "grow_horizon_on": "realised"}
+    result = run(RunConfig("mc-pilco", "cartpole", seed=4, learner_options=growing, task_options={"horizon": 10}, max_trials=3,
                            eval_episodes=1), tracker=MlflowTracker(uri))
-    config, *_, stored = stored_start(result.run_id, 2, uri)
+    config, *_, stored, horizon = stored_start(result.run_id, 2, uri)
     assert config.seed == 4 and config.learner_options["max_steps"] == 10 and stored == result.history[1]["J_after"]
+    assert result.history[0]["planning_horizon"] == 4 and horizon == 8
     out = tmp_path / "search.md"
     main(["--run", result.run_id, "--trial", "2", "--variants", "", "max_steps=2", "--episodes", "3", "--tracking-uri", uri,
           "--out", str(out)])
