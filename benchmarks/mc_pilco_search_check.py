@@ -52,8 +52,9 @@ def parse_variant(text: str) -> dict[str, str]:
 
 def stored_start(run_id: str, trial: int, tracking_uri: str | None):
     """``(run configuration, data episodes, warm-start hyperparameters or None, start controller state or
-    None, stored J_after of the trial, the trial's planning horizon in steps or None where not logged)`` of a stored ``mc-pilco`` run at trial ``trial``; the configuration
-    is the checkpoint's own (:func:`~harness.runner.config_from_identity`)."""
+    None, stored J_after of the trial, the trial's planning horizon in steps or None where not logged)``
+    of a stored ``mc-pilco`` run at trial ``trial``; the configuration is the checkpoint's own
+    (:func:`~harness.runner.config_from_identity`)."""
     from harness.checkpoint import checkpoint_name, load_checkpoint
     from harness.runner import config_from_identity
     from harness.store import layout
@@ -131,12 +132,13 @@ def main(argv: list[str] | None = None) -> None:
 
     run_options = ", ".join(f"{k}={v}" for k, v in sorted(config.learner_options.items())) or "defaults"
     repeat = next((r for r in rows if r[0] == "the run's options"), None)
-    horizon_text = horizon if horizon is not None else "the options'"
+    horizon_text = (f"{horizon} steps (the trial's logged horizon; a variant that sets planning_horizon plans over its own)"
+                    if horizon is not None else "the run's planning horizon")
     lines = [
         f"# mc-pilco's policy search redone: run `{args.run[:8]}`, trial {args.trial}", "",
         f"Command: `{command_line(__file__, argv, env='OMP_NUM_THREADS=1')}`  ",
         f"Run: {task.spec.name}, learner seed {seed}, options {run_options}. The search starts from the controller of trial "
-        f"{args.trial - 1 if args.trial > 1 else 'none (the initial one)'}, over {horizon_text} steps, on the GP fitted to the {len(episodes)} episodes recorded "
+        f"{args.trial - 1 if args.trial > 1 else 'none (the initial one)'}, over {horizon_text}, on the GP fitted to the {len(episodes)} episodes recorded "
         f"before trial {args.trial}'s hand-over, as the run did; the run's random numbers. Real: {args.episodes} episodes of "
         f"the task (seed {args.seed}), its own cost and success rule. One thread, wall time on a shared machine.", "",
     ]
