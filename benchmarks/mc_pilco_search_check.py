@@ -14,6 +14,15 @@ variant (learner options over the run's own, ``key=value`` pairs separated by co
 run's options) searches from that start with the run's random numbers. The empty variant repeats the
 run's own search: its J after the search is checked against the stored ``J_after`` of trial ``K``.
 
+Three keys of a variant are not learner options but its start: ``start=fresh`` searches from a fresh
+initial controller instead of trial ``K-1``'s (the same GP, data and random numbers), drawn as the run
+drew its first one but with generator seed ``learner seed + start_seed`` (``start_seed``, default 0: the
+run's own initial controller); ``start=RUN_ID,start_trial=J`` from the policy another stored run
+(``pilco``, ``pilco-mean`` or ``mc-pilco`` on the same task) handed over at its trial ``J``, its
+controller as it is (its squashing included). They answer whether a restart of the search gets out of
+where the run's search from its last policy settled, and how the run's model rates a policy that solves
+the task (``max_steps=1``: its J on the search's particles, nearly unchanged).
+
 Each resulting policy is scored where it counts, on ``--episodes`` episodes of the real task (the same
 initial states for every variant): mean task cost and success rate (Wilson 95 % interval).
 """
@@ -21,6 +30,7 @@ initial states for every variant): mean task cost and success rate (Wilson 95 % 
 from __future__ import annotations
 
 import argparse
+import copy
 import dataclasses
 import sys
 import time
@@ -39,6 +49,62 @@ from harness.evaluation import Evaluator  # noqa: E402
 from harness.runner import RunConfig, prepare  # noqa: E402
 from harness.seeding import derive_seeds  # noqa: E402
 from harness.store import Store  # noqa: E402
+
+
+START_KEYS = ("start", "start_seed", "start_trial")
+
+
+@dataclasses.dataclass(frozen=True)
+class Start:
+    """Where a variant's search starts: trial ``K-1``'s controller (``kind="stored"``), a fresh initial one
+    drawn with the learner's seed + ``offset`` (``"fresh"``), or the policy run ``run_id`` handed over at
+    ``trial`` (``"run"``)."""
+
+    kind: str = "stored"
+    offset: int = 0
+    run_id: str | None = None
+    trial: int | None = None
+
+
+def split_start(overrides: dict[str, str]) -> tuple[dict[str, str], Start]:
+    """A variant's learner options and its :class:`Start` (keys ``start``, ``start_seed``, ``start_trial``)."""
+    options = {k: v for k, v in overrides.items() if k not in START_KEYS}
+    start = overrides.get("start", "stored")
+
+    def integer(key: str) -> int:
+        try:
+            return int(overrides[key])
+        except ValueError:
+            raise OptionError(f"variant {key}={overrides[key]!r}: {key} is an integer") from None
+
+    if start != "fresh" and "start_seed" in overrides:
+        raise OptionError("variant start_seed without start=fresh: start_seed draws a fresh controller; add start=fresh")
+    if start in ("stored", "fresh") and "start_trial" in overrides:
+        raise OptionError("variant start_trial without a run: write start=RUN_ID,start_trial=J for another run's policy")
+    if start == "stored":
+        return options, Start()
+    if start == "fresh":
+        return options, Start("fresh", offset=integer("start_seed") if "start_seed" in overrides else 0)
+    if "start_trial" not in overrides:
+        raise OptionError(f"variant start={start}: a run's policy needs its trial; add start_trial=J (or start=stored, "
+                          "start=fresh)")
+    return options, Start("run", run_id=start, trial=integer("start_trial"))
+
+
+def start_controller(learner, start: Start, controller_state, tracking_uri: str | None):
+    """The controller a variant's search starts from (see :class:`Start`), on the CPU."""
+    if start.kind == "run":
+        from plugins.pilco.saved_run import SavedPilcoRun
+
+        with SavedPilcoRun(start.run_id, tracking_uri) as other:
+            if other.task.spec.name != learner.spec.name:
+                raise OptionError(f"variant start={start.run_id}: that run is on {other.task.spec.name}, this one on "
+                                  f"{learner.spec.name}")
+            return copy.deepcopy(other.policy(start.trial).controller)
+    controller = learner.new_controller(torch.Generator().manual_seed(learner.seed + start.offset))
+    if controller_state is not None and start.kind == "stored":
+        controller.load_state_dict(controller_state)
+    return controller
 
 
 def parse_variant(text: str) -> dict[str, str]:
@@ -78,17 +144,19 @@ def stored_start(run_id: str, trial: int, tracking_uri: str | None):
 
 
 def search_variant(config: RunConfig, overrides: dict[str, str], episodes, hyperparameters, controller_state, trial: int,
-                   horizon: int | None = None):
+                   horizon: int | None = None, tracking_uri: str | None = None):
     """One variant's search from the stored start, with the run's learner as the runner built it
     (:func:`~harness.runner.new_learner`: its options with ``overrides`` replaced, on the CPU; its derived
     seed), planning over ``horizon`` steps (the trial's logged horizon, which a growing schedule may have
-    raised above the option's start) unless the variant sets ``planning_horizon``: ``(search result,
-    policy, planning cost in words)``."""
+    raised above the option's start) unless the variant sets ``planning_horizon``, from trial ``K-1``'s
+    controller or the variant's own start (:func:`split_start`): ``(search result, policy, planning cost
+    in words)``."""
     from harness.runner import new_learner, prepare
     from harness.task import Episode
     from plugins.pilco.gp import GPHyperparameters
     from plugins.pilco.policy import PilcoPolicy, transitions
 
+    overrides, start = split_start(overrides)
     options = {**config.learner_options, **overrides, "device": "cpu"}
     learner = new_learner(prepare(dataclasses.replace(config, learner_options=options)))
     if horizon is not None and "planning_horizon" not in overrides:
@@ -97,9 +165,7 @@ def search_variant(config: RunConfig, overrides: dict[str, str], episodes, hyper
     x, y = transitions([Episode(**ep) for ep in episodes], learner.layout)
     warm = GPHyperparameters.from_dict(hyperparameters) if hyperparameters is not None else None
     model.fit(x, y, warm_start=warm, seed=learner.seed + trial)
-    controller = learner.new_controller(torch.Generator().manual_seed(learner.seed))
-    if controller_state is not None:
-        controller.load_state_dict(controller_state)
+    controller = start_controller(learner, start, controller_state, tracking_uri)
     posterior = model.posterior(max_basis=learner.options["planning_basis"]).detach()
     _, search = learner.search_trial(controller, posterior, trial)
     cost = "MC-PILCO's" if learner.options["cost"] == "paper" else f"width {learner.planning_width(trial):g}"
@@ -116,13 +182,15 @@ def main(argv: list[str] | None = None) -> None:
     torch.set_num_threads(1)
     start = time.perf_counter()
     variants = [(text, parse_variant(text)) for text in args.variants]
+    for _, overrides in variants:
+        split_start(overrides)  # a bad start key fails before the first search, not after it
     config, episodes, hyperparameters, controller_state, stored, horizon = stored_start(args.run, args.trial, args.tracking_uri)
     task, seed = prepare(config).task, derive_seeds(config.seed)["learner"]
     evaluator = Evaluator(task, n_episodes=args.episodes, seed=args.seed)
     rows = []
     for text, overrides in variants:
         search, policy, cost_text = search_variant(config, overrides, episodes, hyperparameters, controller_state, args.trial,
-                                                  horizon)
+                                                  horizon, args.tracking_uri)
         result = evaluator(policy)
         successes = round(result.success_rate * args.episodes)
         rows.append((text or "the run's options", search, cost_text, result.mean_cost, successes))
@@ -138,7 +206,8 @@ def main(argv: list[str] | None = None) -> None:
         f"# mc-pilco's policy search redone: run `{args.run[:8]}`, trial {args.trial}", "",
         f"Command: `{command_line(__file__, argv, env='OMP_NUM_THREADS=1')}`  ",
         f"Run: {task.spec.name}, learner seed {seed}, options {run_options}. The search starts from the controller of trial "
-        f"{args.trial - 1 if args.trial > 1 else 'none (the initial one)'}, over {horizon_text}, on the GP fitted to the {len(episodes)} episodes recorded "
+        f"{args.trial - 1 if args.trial > 1 else 'none (the initial one)'} (a `start=fresh` variant: from a fresh initial "
+        f"controller, generator seed {seed} + start_seed; `start=RUN`: that run's policy of trial start_trial), over {horizon_text}, on the GP fitted to the {len(episodes)} episodes recorded "
         f"before trial {args.trial}'s hand-over, as the run did; the run's random numbers. Real: {args.episodes} episodes of "
         f"the task (seed {args.seed}), its own cost and success rule. One thread, wall time on a shared machine.", "",
     ]
