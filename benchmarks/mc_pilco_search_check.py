@@ -144,19 +144,18 @@ def stored_start(run_id: str, trial: int, tracking_uri: str | None):
 
 
 def search_variant(config: RunConfig, overrides: dict[str, str], episodes, hyperparameters, controller_state, trial: int,
-                   horizon: int | None = None, tracking_uri: str | None = None):
+                   horizon: int | None = None, start: Start = Start(), tracking_uri: str | None = None):
     """One variant's search from the stored start, with the run's learner as the runner built it
     (:func:`~harness.runner.new_learner`: its options with ``overrides`` replaced, on the CPU; its derived
     seed), planning over ``horizon`` steps (the trial's logged horizon, which a growing schedule may have
-    raised above the option's start) unless the variant sets ``planning_horizon``, from trial ``K-1``'s
-    controller or the variant's own start (:func:`split_start`): ``(search result, policy, planning cost
-    in words)``."""
+    raised above the option's start) unless the variant sets ``planning_horizon``, from ``start`` (trial
+    ``K-1``'s controller unless the variant set its own, :func:`split_start`; ``overrides`` are learner
+    options only): ``(search result, policy, planning cost in words)``."""
     from harness.runner import new_learner, prepare
     from harness.task import Episode
     from plugins.pilco.gp import GPHyperparameters
     from plugins.pilco.policy import PilcoPolicy, transitions
 
-    overrides, start = split_start(overrides)
     options = {**config.learner_options, **overrides, "device": "cpu"}
     learner = new_learner(prepare(dataclasses.replace(config, learner_options=options)))
     if horizon is not None and "planning_horizon" not in overrides:
@@ -181,16 +180,15 @@ def main(argv: list[str] | None = None) -> None:
     args = parser.parse_args(argv)
     torch.set_num_threads(1)
     start = time.perf_counter()
-    variants = [(text, parse_variant(text)) for text in args.variants]
-    for _, overrides in variants:
-        split_start(overrides)  # a bad start key fails before the first search, not after it
+    # (text, learner options, start), every variant checked before the first search
+    variants = [(text, *split_start(parse_variant(text))) for text in args.variants]
     config, episodes, hyperparameters, controller_state, stored, horizon = stored_start(args.run, args.trial, args.tracking_uri)
     task, seed = prepare(config).task, derive_seeds(config.seed)["learner"]
     evaluator = Evaluator(task, n_episodes=args.episodes, seed=args.seed)
     rows = []
-    for text, overrides in variants:
+    for text, overrides, variant_start in variants:
         search, policy, cost_text = search_variant(config, overrides, episodes, hyperparameters, controller_state, args.trial,
-                                                  horizon, args.tracking_uri)
+                                                  horizon, variant_start, args.tracking_uri)
         result = evaluator(policy)
         successes = round(result.success_rate * args.episodes)
         rows.append((text or "the run's options", search, cost_text, result.mean_cost, successes))

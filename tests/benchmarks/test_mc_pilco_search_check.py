@@ -55,7 +55,7 @@ def test_a_fresh_start_is_the_runs_initial_controller_at_offset_0_and_another_on
     assert f"{stored:.2f}" in rows["the run's options"].split("->")[1]
     assert rows[own] == rows["the run's options"]  # the stored policy file is the checkpoint's controller
     assert len(before) == 4 and len(set(before.values())) == 3
-    # trial 1's search started from the initial controller: offset 0 at trial 1 repeats it to the bit
+    # trial 1's search started from the initial controller: offset 0 at trial 1 ends at the stored J (the table's 2 decimals)
     out1 = tmp_path / "fresh1.md"
     *_, stored1, _ = stored_start(result.run_id, 1, uri)
     main(["--run", result.run_id, "--trial", "1", "--variants", "start=fresh", "--episodes", "2", "--tracking-uri", uri,
