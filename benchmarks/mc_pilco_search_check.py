@@ -166,7 +166,7 @@ def search_variant(config: RunConfig, overrides: dict[str, str], episodes, hyper
     model.fit(x, y, warm_start=warm, seed=learner.seed + trial)
     controller = start_controller(learner, start, controller_state, tracking_uri)
     posterior = model.posterior(max_basis=learner.options["planning_basis"]).detach()
-    _, search = learner.search_trial(controller, posterior, trial)
+    _, search = learner.search_trial(controller, posterior, trial, [Episode(**ep) for ep in episodes])
     cost = "MC-PILCO's" if learner.options["cost"] == "paper" else f"width {learner.planning_width(trial):g}"
     return search, PilcoPolicy.snapshot(controller, learner.layout), cost
 

@@ -28,7 +28,7 @@ from __future__ import annotations
 
 import math
 import warnings
-from collections.abc import Iterator
+from collections.abc import Iterator, Sequence
 from typing import TYPE_CHECKING, Any
 
 import numpy as np
@@ -38,7 +38,7 @@ from harness.interaction import Interaction
 from harness.learner import Learner, Policy
 from harness.learner_logs import Logs, Timing
 from harness.options import Option
-from harness.task import TaskSpec
+from harness.task import Episode, TaskSpec
 from harness.threads import run_threads
 from plugins.pilco.gp_data import GP_DATA_OPTIONS, check_gp_data, train_dynamics
 from plugins.pilco.horizon import GROW_HORIZON_ON, HorizonSchedule
@@ -114,6 +114,12 @@ class McPilco(Learner):
         Option("keep", str, "last", "the policy a search hands over: last (the last Adam step's, the paper's) or best (of the "
                "start and each window's end, the one a fixed set of particles rates lowest: a search that ends above where it "
                "started hands over its start)", choices=("last", "best")),
+        Option("step_scale", str, "none", "the units Adam steps the policy's parameters in (it moves each by about the "
+               "learning rate whatever its gradient): none (each in its own, the paper's) or inputs (a weight on policy input "
+               "j in units of 1/std_j, an RBF centre's coordinate j in units of std_j, std_j the spread of input j over every "
+               "observation recorded so far; the rest in their own): a linear policy's weight on a fast state (the unicycle's "
+               "wheel rate, std ~9 rad/s) otherwise changes the control ~40x as much per step as one on an angle (~0.2 rad)",
+               choices=("none", "inputs")),
         Option("window", int, 100, "steps per window of the monitoring signal (mean estimate)", low=1),
         Option("min_improvement", float, 0.01, "a window mean at least this much (relative) below the one before is progress", low=0.0),
         Option("threads", int, None, "CPU threads (default: the harness's choice; harness.threads)", low=1, execution=True),
@@ -188,12 +194,41 @@ class McPilco(Learner):
         return GPModel(device=self.device, sparse_threshold=self.preset.sparse_threshold, num_pseudo=self.preset.sparse_threshold,
                        max_evals_full=o["gp_max_evals"], max_evals_fitc=o["gp_fitc_evals"])
 
-    def search_trial(self, controller: SquashedController, posterior: GPPosterior,
-                     trial: int) -> tuple[ParticleObjective, ParticleSearchResult]:
+    def step_scales(self, controller: SquashedController, episodes: Sequence[Episode],
+                    mode: str | None = None) -> list[torch.Tensor] | None:
+        """Option ``step_scale``'s units for Adam (``mode`` instead of the option, if given), one tensor per
+        trainable parameter of ``controller`` (its shape, on its device), from the policy inputs of every
+        observation in ``episodes``; ``None`` for ``none``. Inputs that never varied get scale 1."""
+        import torch
+
+        mode = self.options["step_scale"] if mode is None else mode
+        if mode not in ("none", "inputs"):
+            raise OptionError(f"step_scale {mode!r}: choose none or inputs")
+        if mode == "none":
+            return None
+        params = [(name, p) for name, p in controller.named_parameters() if p.requires_grad]
+        observations = np.concatenate([np.asarray(ep.observations, dtype=np.float64) for ep in episodes])
+        inputs = self.layout.augment(torch.as_tensor(observations))[:, self.layout.policy_index]
+        std = inputs.std(dim=0) if inputs.shape[0] > 1 else torch.ones(inputs.shape[1], dtype=torch.float64)
+        std = torch.where(std > 1e-12, std, torch.ones_like(std))
+        scales = []
+        for name, p in params:
+            leaf = name.rsplit(".", 1)[-1]
+            if leaf == "weight":  # LinearController (F, p): u = W x + b
+                scale = (1.0 / std).expand(p.shape[0], -1)
+            elif leaf == "centres":  # RBFController (n_c, p)
+                scale = std.expand(p.shape[0], -1)
+            else:
+                scale = torch.ones(p.shape, dtype=torch.float64)
+            scales.append(scale.to(p.device).clone())
+        return scales
+
+    def search_trial(self, controller: SquashedController, posterior: GPPosterior, trial: int,
+                     episodes: Sequence[Episode] | None = None) -> tuple[ParticleObjective, ParticleSearchResult]:
         """Trial ``trial``'s policy search: Adam on the particle estimate of J through ``posterior`` (a fixed
         model on the controller's device) with this learner's options, from ``controller``'s parameters
-        (changed in place). Its random draws are seeded by ``(seed, trial)``. Returns the objective and
-        the search's outcome."""
+        (changed in place). Its random draws are seeded by ``(seed, trial)``. ``episodes``: the data so far,
+        for option ``step_scale=inputs`` (required there). Returns the objective and the search's outcome."""
         import torch
 
         from plugins.mc_pilco.optimise import optimise_particles
@@ -210,10 +245,13 @@ class McPilco(Learner):
             where = f", J_hat {mean:.2f} (mean of the last {o['window']})" if math.isfinite(mean) else ""
             self.report_status(f"policy search: Adam step {step}/{o['max_steps']}{where}, dropout {dropout:g}")
 
+        if o["step_scale"] != "none" and episodes is None:
+            raise ValueError("search_trial: step_scale=inputs needs the episodes recorded so far (argument episodes)")
+        scales = None if episodes is None else self.step_scales(controller, episodes)
         search = optimise_particles(objective, max_steps=o["max_steps"], lr=o["lr"], dropout=o["dropout"],
                                     dropout_step=o["dropout_step"], lr_decay=o["lr_decay"], window=o["window"],
                                     min_improvement=o["min_improvement"], seed=1000 * self.seed + trial, keep=o["keep"],
-                                    on_step=shown)
+                                    step_scales=scales, on_step=shown)
         return objective, search
 
     @classmethod
@@ -288,7 +326,7 @@ class McPilco(Learner):
                                             hyperparameters, self.report_status, seed=self.seed + trial)
             hyperparameters = model.hyperparameters
             posterior = model.posterior(max_basis=o["planning_basis"]).detach()
-            objective, search = self.search_trial(controller, posterior, trial)
+            objective, search = self.search_trial(controller, posterior, trial, interaction.episodes)
             self.metrics = {
                 "n_data": float(fit.n_points), "gp_sparse": float(fit.sparse), "gp_nll": fit.nll,
                 "model_train_seconds": fit.seconds, "J_before": search.J_before, "J_after": search.J_after,

@@ -12,6 +12,11 @@ end of each window and its end, the parameters whose estimate on one fixed set o
 dropout, the random numbers of ``J_before``/``J_after``) is lowest: common random numbers make those
 estimates comparable, which single steps' noisy estimates are not. It costs one estimate without
 gradient per window.
+
+Adam moves every parameter by about the learning rate per step whatever its gradient's size, so the
+parameters' units matter. ``step_scales`` (one tensor per parameter, its shape) sets them: Adam runs
+on ``phi = theta / scale``, i.e. it is handed ``scale * dJ/dtheta`` and ``theta`` moves by ``scale``
+times Adam's step (``None``: every parameter in its own units, the paper's).
 """
 
 from __future__ import annotations
@@ -54,12 +59,33 @@ class ParticleSearchResult:
     trace: list[float]
 
 
+def adam_step(opt: torch.optim.Adam, params: list[torch.Tensor], grads: list[torch.Tensor | None],
+              step_scales: list[torch.Tensor] | None = None) -> None:
+    """One step of ``opt`` (an Adam over ``params``) with gradient ``grads`` of J wrt ``params``; with
+    ``step_scales``, Adam on ``phi = theta / scale``: it is handed ``scale * g`` and ``theta`` moves by
+    ``scale`` times its step (Adam's state then lives in ``phi``'s units)."""
+    if step_scales is None:
+        for q, g in zip(params, grads):
+            q.grad = g
+        opt.step()
+        return
+    before = [q.detach().clone() for q in params]
+    for q, g, c in zip(params, grads, step_scales):
+        q.grad = None if g is None else g * c
+    opt.step()
+    with torch.no_grad():
+        for q, b, c in zip(params, before, step_scales):
+            q.copy_(b + c * (q - b))
+
+
 def optimise_particles(objective: ParticleObjective, *, max_steps: int, lr: float, dropout: float, dropout_step: float,
                        lr_decay: float, window: int, min_improvement: float, seed: int, keep: str = "last",
+                       step_scales: list[torch.Tensor] | None = None,
                        on_step: Callable[[int, float, float], None] | None = None) -> ParticleSearchResult:
     """Minimise ``J_hat`` over the controller's parameters, left at the last step's values
     (``keep="last"``) or at those of the start or a window's end that the fixed particles rate lowest
-    (``keep="best"``).
+    (``keep="best"``). ``step_scales``: Adam in the units ``theta / scale`` (see the module docstring;
+    one tensor per :meth:`~plugins.mc_pilco.particles.ParticleObjective.parameters` entry, its shape).
 
     ``on_step(step, window mean of J_hat or nan before the first window, dropout)``, if given, is
     called after every Adam step (for progress)."""
@@ -73,6 +99,9 @@ def optimise_particles(objective: ParticleObjective, *, max_steps: int, lr: floa
 
     if keep not in ("last", "best"):
         raise ValueError(f"keep must be 'last' or 'best', got {keep!r}")
+    if step_scales is not None and [tuple(q.shape) for q in step_scales] != [tuple(q.shape) for q in params]:
+        raise ValueError(f"step_scales must have the parameters' shapes {[tuple(q.shape) for q in params]}, got "
+                         f"{[tuple(q.shape) for q in step_scales]}")
     J_before = checked()
     best = (J_before, 0, [q.detach().clone() for q in params]) if keep == "best" else None  # (estimate, step, parameters)
 
@@ -93,9 +122,7 @@ def optimise_particles(objective: ParticleObjective, *, max_steps: int, lr: floa
         if not usable:  # J_hat or its gradient not finite
             skipped += 1
             continue
-        for q, g in zip(params, grads):
-            q.grad = g
-        opt.step()
+        adam_step(opt, params, grads, step_scales)
         estimates.append(J)
         if len(estimates) % window == 0:
             trace.append(float(np.mean(estimates[-window:])))

@@ -526,3 +526,83 @@ def test_far_rbf_centres_are_measured_and_warned_about() -> None:
                 next(near.learn(_StopAtFirstRollout()))
     assert McPilco(spec, {"controller": "linear"}, seed=0).start_kernel(
         McPilco(spec, {"controller": "linear"}, seed=0).new_controller(torch.Generator().manual_seed(0))) is None
+
+
+class _Quadratic:
+    """A deterministic J(theta) = sum a (theta - t)^2 over two parameter tensors, with the
+    :class:`ParticleObjective` methods :func:`optimise_particles` uses; ``map`` turns the optimised
+    parameters into theta (``theta = map * phi``, 1 for the parameters themselves)."""
+
+    def __init__(self, start: list[torch.Tensor], map_: list[torch.Tensor]) -> None:
+        g = torch.Generator().manual_seed(3)
+        self.params = [q.clone().requires_grad_(True) for q in start]
+        self.map = map_
+        self.a = [torch.rand(q.shape, generator=g, dtype=torch.float64) * 10 ** torch.linspace(-2, 2, q.numel()).view(q.shape)
+                  for q in start]
+        self.t = [torch.randn(q.shape, generator=g, dtype=torch.float64) for q in start]
+
+    def parameters(self) -> list[torch.Tensor]:
+        return self.params
+
+    def value(self, generator: torch.Generator, dropout: float = 0.0) -> torch.Tensor:
+        return sum((a * (m * q - t) ** 2).sum() for q, m, a, t in zip(self.params, self.map, self.a, self.t))
+
+    def value_and_grad(self, generator: torch.Generator, dropout: float = 0.0):
+        J = self.value(generator)
+        return float(J.detach()), True, list(torch.autograd.grad(J, self.params))
+
+
+def test_step_scales_run_adam_on_the_parameters_over_their_scales() -> None:
+    """Adam with step_scales c on theta is Adam without them on phi = theta / c (J(c phi)): the same
+    path, computed here as that second, unscaled search."""
+    g = torch.Generator().manual_seed(0)
+    theta0 = [torch.randn(2, 3, generator=g, dtype=torch.float64), torch.randn(2, generator=g, dtype=torch.float64)]
+    scales = [torch.tensor([[0.1, 1.0, 8.0], [0.5, 2.0, 0.02]], dtype=torch.float64), torch.tensor([1.0, 3.0], dtype=torch.float64)]
+    kwargs = dict(max_steps=60, lr=0.05, dropout=0.0, dropout_step=0.125, lr_decay=0.5, window=1000, min_improvement=0.0, seed=0)
+    scaled = _Quadratic(theta0, [torch.ones_like(q) for q in theta0])
+    a = optimise_particles(scaled, step_scales=scales, **kwargs)
+    phi = _Quadratic([q / c for q, c in zip(theta0, scales)], scales)
+    b = optimise_particles(phi, **kwargs)
+    for q, p, c in zip(scaled.params, phi.params, scales):
+        torch.testing.assert_close(q.detach(), c * p.detach(), rtol=1e-12, atol=1e-12)
+    assert a.J_after == pytest.approx(b.J_after, rel=1e-10) and a.J_after < a.J_before
+    unscaled = _Quadratic(theta0, [torch.ones_like(q) for q in theta0])
+    optimise_particles(unscaled, **kwargs)  # a different path without them
+    assert not torch.allclose(unscaled.params[0], scaled.params[0])
+    with pytest.raises(ValueError, match="step_scales must have the parameters' shapes"):
+        optimise_particles(_Quadratic(theta0, scales), step_scales=scales[:1], **kwargs)
+
+
+def test_step_scale_inputs_uses_the_spread_of_the_policy_inputs_in_the_data() -> None:
+    """Cart-pole's policy sees [x, xdot, thetadot, sin theta, cos theta] of each observation (computed
+    here with numpy): a linear policy's weight column j gets 1/std_j, its bias 1; RBF centres std_j."""
+    from harness.task import Episode
+
+    rng = np.random.default_rng(1)
+    episodes = [Episode(observations=rng.normal(size=(6, 4)) * [0.5, 2.0, 9.0, 3.0], states=np.zeros((6, 4)),
+                        actions=np.zeros((5, 1)), costs=np.zeros(5), terminated=False, clipped_actions=0, extra={})
+                for _ in range(3)]
+    obs = np.concatenate([ep.observations for ep in episodes])
+    std = np.stack([obs[:, 0], obs[:, 1], obs[:, 2], np.sin(obs[:, 3]), np.cos(obs[:, 3])], axis=1).std(axis=0, ddof=1)
+    from harness.runner import new_learner, prepare
+
+    linear = new_learner(prepare(RunConfig("mc-pilco", "cartpole", seed=0, learner_options={"controller": "linear",
+                                                                                             "step_scale": "inputs"})))
+    controller = linear.new_controller(torch.Generator().manual_seed(0))
+    weight, bias = linear.step_scales(controller, episodes)
+    np.testing.assert_allclose(weight.numpy(), np.tile(1.0 / std, (controller.base.weight.shape[0], 1)), rtol=1e-12)
+    assert torch.equal(bias, torch.ones_like(controller.base.bias))
+    rbf = new_learner(prepare(RunConfig("mc-pilco", "cartpole", seed=0, learner_options={"step_scale": "inputs", **TINY})))
+    controller = rbf.new_controller(torch.Generator().manual_seed(0))
+    scales = dict(zip([n for n, p in controller.named_parameters() if p.requires_grad], rbf.step_scales(controller, episodes)))
+    np.testing.assert_allclose(scales["base.centres"].numpy(), np.tile(std, (4, 1)), rtol=1e-12)
+    assert all(torch.equal(s, torch.ones_like(s)) for n, s in scales.items() if n != "base.centres")
+    assert new_learner(prepare(RunConfig("mc-pilco", "cartpole", seed=0))).step_scales(controller, episodes) is None
+
+
+def test_step_scale_inputs_runs_and_changes_the_search() -> None:
+    base = RunConfig("mc-pilco", "cartpole", seed=3, learner_options=TINY | {"controller": "linear"}, task_options={"horizon": 10},
+                     max_trials=2, eval_episodes=1)
+    plain = run(base).history
+    scaled = run(dataclasses.replace(base, learner_options=base.learner_options | {"step_scale": "inputs"})).history
+    assert plain[0]["J_before"] == scaled[0]["J_before"] and plain[0]["J_after"] != scaled[0]["J_after"]
