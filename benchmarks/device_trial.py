@@ -3,7 +3,7 @@
 Usage::
 
     python benchmarks/device_trial.py --data benchmarks/data/gp_double-pendulum_50ec8b95_t20.npz \\
-        --task double-pendulum --set horizon=60 --devices cpu cuda [--threads 1] [--profile] \\
+        --task double-pendulum --set horizon=60 --devices cpu cuda [cuda+compile] [--threads 1] [--profile] \\
         [--out results/benchmarks/device_trial_double-pendulum.md]
 
 The data file (``benchmarks/compare_gp_fit.py --extract``) holds a stored run's transitions up to
@@ -26,6 +26,11 @@ replays J + dJ as a CUDA graph (the learner's default, ``cuda_graph``). ``--prof
 GPU's top kernels and the count of host-device synchronisations in one J + dJ launched without a graph. ``--task-objectives`` adds
 J + dJ on both devices at the sizes of ``benchmarks/task_objectives.py`` (and cart-pole n=300), with
 their agreement. ``--search-evaluations N`` caps the policy search below the preset (smoke runs).
+
+``cuda+compile`` is ``cuda`` with the learner's ``compile_step`` (each rollout step as ``torch.compile``'d
+code, then replayed in the CUDA graph); its first J + dJ includes the compilation, reported apart. With it
+among the devices, ``--task-objectives`` adds the compiled objective's columns and the kernels one J + dJ
+launches with and without it.
 """
 
 from __future__ import annotations
@@ -60,12 +65,14 @@ def _timed(device: torch.device, f, *args, **kwargs):
 
 
 def build(task_name: str, task_options: dict[str, str], device: str, seed: int):
-    """The task, a ``pilco`` learner on it (``device``) and its fresh controller."""
+    """The task and a ``pilco`` learner on it (``device``: ``cpu``, ``cuda`` or ``cuda+compile``)."""
     from harness.discovery import load_task
     from plugins.pilco.learner import Pilco
 
     task = load_task(task_name)(**task_options)
-    learner = Pilco(task.spec, {"device": device, "kernel": "auto" if device == "cpu" else "torch"}, seed)
+    name, _, extra = device.partition("+")
+    learner = Pilco(task.spec, {"device": name, "kernel": "auto" if name == "cpu" else "torch",
+                                "compile_step": extra == "compile"}, seed)
     return task, learner
 
 
@@ -74,10 +81,15 @@ def objective_for(learner, posterior, controller):
     return learner.planning_objective(controller, posterior, threads=1)
 
 
-def time_objective(objective, repeats: int) -> float:
-    """Median wall ms of one J + dJ (3 warm-ups); ``value_and_grad`` ends with the host copy of J and dJ."""
+def time_objective(objective, repeats: int, first: list | None = None) -> float:
+    """Median wall ms of one J + dJ (3 warm-ups); ``value_and_grad`` ends with the host copy of J and dJ.
+    ``first``: gets the first warm-up's wall seconds appended (compilation, graph capture)."""
     theta = objective.get_flat()
-    for _ in range(3):
+    t0 = time.perf_counter()
+    objective(theta)
+    if first is not None:
+        first.append(time.perf_counter() - t0)
+    for _ in range(2):
         objective(theta)
     times = []
     for _ in range(repeats):
@@ -106,7 +118,8 @@ def one_trial(args, device: str) -> dict:
     posterior = model.posterior()
     controller = learner.new_controller(torch.Generator().manual_seed(args.seed))
     objective = objective_for(learner, posterior, controller)
-    per_eval_ms = time_objective(objective, args.repeats)
+    first: list[float] = []
+    per_eval_ms = time_objective(objective, args.repeats, first)
     preset = learner.preset
     cap = args.search_evaluations or preset.policy_max_evaluations
     search, search_s = _timed(dev, optimise_policy, objective, preset.policy_max_iterations, cap)
@@ -115,15 +128,15 @@ def one_trial(args, device: str) -> dict:
     return dict(device=device, gp_s=gp_s, gp_evaluations=report.evaluations, gp_nll=report.nll, per_eval_ms=per_eval_ms,
                 search_s=search_s, evaluations=search.evaluations, J_after=float(search.J_after),
                 checks_s=predicted_s + sampled_s, J_sampled=float(sampled.sum()),
-                total_s=gp_s + search_s + predicted_s + sampled_s, posterior=posterior.detach().to("cpu"),
+                total_s=gp_s + search_s + predicted_s + sampled_s, posterior=posterior.detach().to("cpu"), first_s=first[0],
                 graph=("not used" if dev.type == "cpu" else "replayed" if objective.graph_error is None
                        else f"capture failed ({objective.graph_error})"))
 
 
-def agreement(args, posterior) -> tuple[float, float, float]:
+def agreement(args, posterior, gpu: str = "cuda") -> tuple[float, float, float]:
     """J (CPU), and the relative differences of J and dJ between a CPU and a GPU objective on ``posterior``."""
     values = []
-    for device in ("cpu", "cuda"):
+    for device in ("cpu", gpu):
         _, learner = build(args.task, args.task_options, device, args.seed)
         controller = learner.new_controller(torch.Generator().manual_seed(args.seed))
         objective = objective_for(learner, posterior.to(learner.device), controller)
@@ -160,30 +173,70 @@ def profile(args, posterior) -> list[str]:
     return lines
 
 
-def task_objectives(repeats: int) -> list[str]:
+def kernel_launches(objective) -> int:
+    """Kernels one J + dJ of ``objective`` launches (run without its CUDA graph, under the profiler)."""
+    from torch.profiler import ProfilerActivity
+    from torch.profiler import profile as torch_profile
+
+    graph, objective.cuda_graph = objective.cuda_graph, False
+    theta = objective.get_flat()
+    objective(theta)
+    with torch_profile(activities=[ProfilerActivity.CPU, ProfilerActivity.CUDA]) as prof:
+        objective(theta)
+        torch.cuda.synchronize()
+    objective.cuda_graph = graph
+    return sum(e.count for e in prof.key_averages() if e.key in ("cudaLaunchKernel", "cuLaunchKernel", "cudaLaunchKernelExC",
+                                                                 "cuLaunchKernelEx", "cudaGraphLaunch"))
+
+
+def compiled_columns(cpu, make, theta, J_c, g_c, repeats: int) -> list[str]:
+    """The ``compile_step`` objective's cells for :func:`task_objectives`: first J + dJ s (compiling, capturing),
+    ms replayed, kernels launched uncompiled / compiled, J and dJ against the CPU."""
+    plain, compiled = make(False, False), make(True, True)
+    first: list[float] = []
+    t = time_objective(compiled, repeats, first)
+    J_k, g_k = compiled(theta)
+    graph = f"{t:.2f}" if compiled.graph_error is None else f"capture failed: {compiled.graph_error[:60]}"
+    launches = f"{kernel_launches(plain)} / {kernel_launches(make(True, False))}"
+    return [f"{first[0]:.1f}", graph, launches, f"{abs(J_k - J_c) / abs(J_c):.1e}",
+            f"{np.linalg.norm(g_k - g_c) / np.linalg.norm(g_c):.1e}"]
+
+
+def task_objectives(repeats: int, compiled: bool = False) -> list[str]:
     """J + dJ wall ms on the CPU (this process's threads) and the GPU (every operation launched, and
-    replayed as a CUDA graph) at the real tasks' sizes, and the GPU's agreement with the CPU."""
+    replayed as a CUDA graph) at the real tasks' sizes, and the GPU's agreement with the CPU;
+    ``compiled``: the ``compile_step`` objective's columns too (:func:`compiled_columns`)."""
     import copy
 
     from benchmarks.task_objectives import TASK_CONFIGS, task_objective
     from plugins.pilco.objective import PolicyObjective
 
     configs = {"cartpole n=300 H=40": ("cartpole", {}, 300, 40), **TASK_CONFIGS}
-    lines = ["", "J + dJ at the real tasks' sizes (`benchmarks/task_objectives.py`), CPU and GPU:", "",
-             "| objective | CPU ms | GPU ms, eager | GPU ms, CUDA graph | CPU / graph | J rel. difference | dJ rel. difference |",
-             "|---|---|---|---|---|---|---|"]
+    head = "| objective | CPU ms | GPU ms, eager | GPU ms, CUDA graph | CPU / graph | J rel. difference | dJ rel. difference |"
+    if compiled:
+        head += (" compile_step: first J + dJ s | compiled, CUDA graph ms | kernels per J + dJ, uncompiled / compiled |"
+                 " J rel. difference | dJ rel. difference |")
+    lines = ["", "J + dJ at the real tasks' sizes (`benchmarks/task_objectives.py`), CPU and GPU:", "", head,
+             "|" + "---|" * (head.count("|") - 1)]
     for name, (task, options, n, horizon) in configs.items():
         cpu = task_objective(task, options, n, horizon)
-        gpus = [PolicyObjective(copy.deepcopy(cpu.controller), cpu.posterior, cpu.layout, cpu.cost.cost, cpu.init_mean.numpy(),
-                                cpu.init_cov.numpy(), cpu.horizon, cpu.mean_only, cpu.cost.width, kernel="torch", device="cuda",
-                                cuda_graph=graph) for graph in (False, True)]
+
+        def make(compile_step: bool, graph: bool):
+            return PolicyObjective(copy.deepcopy(cpu.controller), cpu.posterior, cpu.layout, cpu.cost.cost, cpu.init_mean.numpy(),
+                                   cpu.init_cov.numpy(), cpu.horizon, cpu.mean_only, cpu.cost.width, kernel="torch", device="cuda",
+                                   cuda_graph=graph, compile_step=compile_step)
+
+        gpus = [make(False, graph) for graph in (False, True)]
         theta = cpu.get_flat()
         J_c, g_c = cpu(theta)
         J_g, g_g = gpus[1](theta)
         t_cpu, t_eager, t_graph = (time_objective(o, repeats) for o in (cpu, *gpus))
         graph = f"{t_graph:.2f}" if gpus[1].graph_error is None else f"capture failed: {gpus[1].graph_error[:80]}"
-        lines.append(f"| {name} | {t_cpu:.1f} | {t_eager:.1f} | {graph} | {t_cpu / t_graph:.0f}x | {abs(J_g - J_c) / abs(J_c):.1e} | "
-                     f"{np.linalg.norm(g_g - g_c) / np.linalg.norm(g_c):.1e} |")
+        cells = [name, f"{t_cpu:.1f}", f"{t_eager:.1f}", graph, f"{t_cpu / t_graph:.0f}x", f"{abs(J_g - J_c) / abs(J_c):.1e}",
+                 f"{np.linalg.norm(g_g - g_c) / np.linalg.norm(g_c):.1e}"]
+        if compiled:
+            cells += compiled_columns(cpu, make, theta, J_c, g_c, repeats)
+        lines.append("| " + " | ".join(cells) + " |")
         print(lines[-1], flush=True)
     return lines
 
@@ -193,7 +246,7 @@ def main(argv: list[str] | None = None) -> None:
     parser.add_argument("--data", required=True, help="a .npz written by benchmarks/compare_gp_fit.py --extract")
     parser.add_argument("--task", required=True)
     parser.add_argument("--set", dest="sets", action="append", default=[], metavar="KEY=VALUE", help="task option")
-    parser.add_argument("--devices", nargs="+", default=["cpu", "cuda"], choices=["cpu", "cuda"])
+    parser.add_argument("--devices", nargs="+", default=["cpu", "cuda"], choices=["cpu", "cuda", "cuda+compile"])
     parser.add_argument("--threads", type=int, default=1, help="torch threads on the CPU side")
     parser.add_argument("--repeats", type=int, default=10)
     parser.add_argument("--seed", type=int, default=0, help="the fresh controller's seed")
@@ -203,7 +256,7 @@ def main(argv: list[str] | None = None) -> None:
     parser.add_argument("--out", type=Path, default=None)
     args = parser.parse_args(argv)
     args.task_options = dict(s.split("=", 1) for s in args.sets)
-    if "cuda" in args.devices and not torch.cuda.is_available():
+    if any(d.startswith("cuda") for d in args.devices) and not torch.cuda.is_available():
         parser.error("--devices cuda: torch sees no CUDA GPU here (leave cuda out)")
     load = load_average()
     rows = []
@@ -218,26 +271,31 @@ def main(argv: list[str] | None = None) -> None:
              f"{machine_line(load)} GPU: {gpu}.  ",
              f"Data: `{Path(args.data).name}` ({json.loads(str(np.load(args.data)['settings']))['source']}); "
              f"task `{args.task}` {args.task_options}; CPU side: {args.threads} torch thread(s).", "",
-             "| device | GP fit s (evals) | J + dJ ms | policy search s (evals) | J after | checks s | trial computation s |",
-             "|---|---|---|---|---|---|---|"]
+             "| device | GP fit s (evals) | J + dJ ms | first J + dJ s | policy search s (evals) | J after | checks s | trial computation s |",
+             "|---|---|---|---|---|---|---|---|"]
     for r in rows:
-        lines.append(f"| {r['device']} | {r['gp_s']:.1f} ({r['gp_evaluations']}) | {r['per_eval_ms']:.1f} | {r['search_s']:.1f} "
-                     f"({r['evaluations']}) | {r['J_after']:.4f} | {r['checks_s']:.2f} | {r['total_s']:.1f} |")
-    lines += [f"J + dJ on the GPU: {r['graph']} as a CUDA graph." for r in rows if r["device"] == "cuda"]
-    if len(rows) == 2:
+        lines.append(f"| {r['device']} | {r['gp_s']:.1f} ({r['gp_evaluations']}) | {r['per_eval_ms']:.1f} | {r['first_s']:.1f} | "
+                     f"{r['search_s']:.1f} ({r['evaluations']}) | {r['J_after']:.4f} | {r['checks_s']:.2f} | {r['total_s']:.1f} |")
+    lines += [f"J + dJ on the GPU ({r['device']}): {r['graph']} as a CUDA graph." for r in rows if r["device"] != "cpu"]
+    lines += ["First J + dJ: the first of the warm-ups before the search (not in the J + dJ column, nor in the trial's "
+              "seconds): the CUDA graph's capture and, with compile_step, torch.compile's build of the step (made once per "
+              "process and GP size; in a run it is the first trial's first evaluation)."]
+    if [r["device"] for r in rows] == ["cpu", "cuda"]:
         c, g = rows
         lines += ["", f"GPU / CPU speed-up: GP fit {c['gp_s'] / g['gp_s']:.1f}x, J + dJ {c['per_eval_ms'] / g['per_eval_ms']:.1f}x, "
                       f"trial computation {c['total_s'] / g['total_s']:.1f}x. GP NLL cpu {c['gp_nll']:.4f}, cuda {g['gp_nll']:.4f} "
                       "(two fits that round differently part after some L-BFGS steps)."]
-    if "cuda" in args.devices:
-        J, dJ_rel, dg_rel = agreement(args, rows[0]["posterior"])
-        lines += ["", f"Exactness, CPU vs GPU objective on the same posterior and theta: J = {J:.12g}, relative difference "
+    gpus = [d for d in args.devices if d != "cpu"]
+    for gpu in gpus:
+        J, dJ_rel, dg_rel = agreement(args, rows[0]["posterior"], gpu)
+        lines += ["", f"Exactness, CPU vs GPU ({gpu}) objective on the same posterior and theta: J = {J:.12g}, relative difference "
                       f"{dJ_rel:.2e} (bound 1e-10); dJ relative difference {dg_rel:.2e} (bound 1e-7)."]
+    if gpus:
         if args.profile:
             lines += [""] + profile(args, rows[0]["posterior"])
             print("\n".join(lines[-18:]), flush=True)
         if args.task_objectives:
-            lines += task_objectives(args.repeats)
+            lines += task_objectives(args.repeats, compiled="cuda+compile" in args.devices)
     write_report(lines, args.out)
 
 

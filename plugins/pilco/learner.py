@@ -163,6 +163,9 @@ class Pilco(Learner):
                "(cuda where torch sees one)", choices=("cpu", "cuda", "auto"), execution=True),
         Option("cuda_graph", bool, True, "on a GPU, capture J + dJ once per policy search as a CUDA graph and replay it "
                "(false: launch every operation each evaluation)", execution=True),
+        Option("compile_step", bool, False, "run each rollout step of J + dJ as code made by torch.compile (fewer, fused "
+               "kernels: for a GPU, where launches set the time; made at a search's first evaluation; kernel torch)",
+               execution=True),
         Option("plots", bool, True, "save the predicted-vs-realised cost plot per trial"),
         Option("sample_particles", int, 500, "particles for J_sampled, the policy's cost by Monte Carlo through the same GP "
                "(checks the moment-matching J; 0 = off)", low=0),
@@ -201,6 +204,9 @@ class Pilco(Learner):
             self.kernel = resolve_kernel(o["kernel"], self.device)
         except ValueError as exc:
             raise OptionError(f"kernel={o['kernel']}: {exc} (or --set kernel=torch)") from None
+        if o["compile_step"] and self.kernel != "torch":
+            raise OptionError(f"compile_step=true needs kernel=torch, not {self.kernel} on {self.device.type} "
+                              "(add --set kernel=torch, or --set device=cuda)")
         self._state: dict[str, Any] = {}  # see state_dict(); filled at every hand-over
 
     @property
@@ -373,7 +379,8 @@ class Pilco(Learner):
         spec = self.spec
         return PolicyObjective(controller, posterior, self.layout, spec.cost, spec.init_mean, spec.init_cov, self.horizon,
                                mean_only=self.mean_only, width=self.cost_width, policy_noise_std=self.policy_noise_std,
-                               kernel=self.kernel, threads=threads, device=self.device, cuda_graph=self.options["cuda_graph"])
+                               kernel=self.kernel, threads=threads, device=self.device, cuda_graph=self.options["cuda_graph"],
+                               compile_step=self.options["compile_step"])
 
     def search_policy(self, objective: PolicyObjective, kernel: str, threads: int, what: str = "policy search"):
         """One policy search from the controller's current parameters within the preset's budgets

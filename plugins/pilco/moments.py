@@ -180,6 +180,11 @@ class _Workspace:
         return self.slots[slot] if slot < len(self.stamps) and self.stamps[slot] == stamp else None
 
     def buffer(self, name: str, shape: tuple[int, ...], dtype: torch.dtype) -> torch.Tensor:
+        """The scratch buffer ``name`` of this shape and dtype (made at first use, reused after). Inside
+        ``torch.compile`` (``compile_step``) a fresh tensor instead: the compiled code allocates its own, and
+        a Python-side cache would be guarded on (a recompilation whenever a buffer is made)."""
+        if torch.compiler.is_compiling():
+            return torch.empty(shape, dtype=dtype, device=self.device)
         buf = self.buffers.get(name)
         if buf is None or buf.shape != shape or buf.dtype != dtype:
             with torch.inference_mode(False):  # an ordinary tensor, usable in and out of inference mode

@@ -46,6 +46,10 @@ class PolicyObjective:
             controller in place); theta goes in and dJ comes out as NumPy arrays on the host.
         cuda_graph: on a GPU, capture J + dJ once as a CUDA graph and replay it for every theta
             (:meth:`value_and_grad`); ``False``: launch every operation anew each time.
+        compile_step: run each rollout step as code made by ``torch.compile``
+            (:class:`~plugins.pilco.propagate.FusedStep`: the elementwise operations fused into fewer
+            kernels, for a GPU, where their launches set the time; made at the first evaluation).
+            Needs the ``torch`` kernel (the default off the CPU).
 
     Off the CPU, J + dJ runs with its factorisations' failure checks deferred to the end
     (:func:`~plugins.pilco.kernels.deferred_checks`: one host read per evaluation instead of one
@@ -69,12 +73,17 @@ class PolicyObjective:
         threads: int = 1,
         device: torch.device | str | None = None,
         cuda_graph: bool = True,
+        compile_step: bool = False,
     ) -> None:
         self.device = posterior.beta.device if device is None else torch.device(device)
         self.controller = controller.to(self.device)
         self.posterior = posterior.detach().to(self.device)
         # kept: precomputed constants, work buffers
         self.dynamics = MomentMatchingGP(self.posterior, kernel=kernel, threads=threads)
+        self.compile_step = bool(compile_step)
+        if self.compile_step and self.dynamics.kernel != "torch":
+            raise ValueError(f"compile_step needs the torch kernel, not {self.dynamics.kernel!r}: "
+                             "pass kernel='torch' (the default off the CPU) or leave compile_step off")
         self.layout = layout
         self.cost = CostMoments(cost, width, self.device)
         self.init_mean = torch.as_tensor(np.asarray(init_mean, dtype=np.float64), device=self.device)
@@ -94,7 +103,7 @@ class PolicyObjective:
     def state_distributions(self) -> tuple[torch.Tensor, torch.Tensor]:
         """Predicted ``means (H+1, D)``, ``covs (H+1, D, D)`` (index 0 = initial)."""
         return rollout(self.init_mean, self.init_cov, self.horizon, self.dynamics, self.controller, self.layout,
-                       self.mean_only, self.policy_noise)
+                       self.mean_only, self.policy_noise, self.compile_step)
 
     def step_costs(self) -> tuple[torch.Tensor, torch.Tensor]:
         """Expected cost and its variance for ``x_1 .. x_H``: two ``(H,)`` tensors."""

@@ -22,6 +22,7 @@ gradients, a plain callable policy) autograd differentiates :func:`propagate_ste
 
 from __future__ import annotations
 
+import os
 from dataclasses import dataclass
 from functools import cached_property, lru_cache
 
@@ -29,6 +30,7 @@ import numpy as np
 import torch
 
 from plugins.pilco.controllers import MomentMap, MomentStage
+from plugins.pilco.kernels import deferred_checks, deferred_flags
 from plugins.pilco.moments import MomentMatchingGP
 from plugins.pilco.posterior import GPPosterior
 from plugins.pilco.trig import _doubled, _sin_backward, _sin_forward, augment_trig
@@ -206,11 +208,21 @@ class FusedStep:
     (:func:`~plugins.pilco.trig._sin_backward`, :meth:`MomentStage.backward`,
     :meth:`MomentMatchingGP.backward`) and returns gradients wrt ``m``, ``S`` and the policy
     stage's tensors. Numerically it is the same computation as :func:`propagate_step_autograd`.
+
+    ``compile_step``: run each step's forward and backward pass as code made by ``torch.compile``
+    (:func:`_compiled`; the same operations, with the elementwise ones fused into fewer kernels: on a
+    GPU the step's kernel launches, not its arithmetic, set the time). Made at the first call (tens of
+    seconds); the dynamics GP then forms ``Q`` again in the backward pass (as it does by default:
+    ``HARNESS_PILCO_KEEP_Q_MB`` is not used). Factorisations inside are checked as
+    :func:`~plugins.pilco.kernels.deferred_checks` does; outside such a block a step whose
+    factorisation failed is redone without the compiled code, so that it raises (or retries with
+    jitter) exactly as without ``compile_step``.
     """
 
     def __init__(self, dynamics: MomentMatchingGP, policy: MomentStage, layout: StateLayout, mean_only: bool,
-                 policy_noise: torch.Tensor | None = None) -> None:
+                 policy_noise: torch.Tensor | None = None, compile_step: bool = False) -> None:
         self.dynamics, self.policy, self.layout, self.mean_only = dynamics, policy, layout, mean_only
+        self.compile_step = bool(compile_step)
         self.policy_noise = policy_noise  # (p, p) or None; a constant: the backward pass is unchanged
         a, f = layout.augmented_dim, dynamics.input_dim - layout.model_input_dim
         device = dynamics.beta.device
@@ -238,6 +250,8 @@ class FusedStep:
     def run(self, m0, S0, horizon, keep: bool = True):
         """:meth:`forward` ``horizon`` times: ``(means (H+1, D), covs (H+1, D, D), [saved per step])``.
         ``keep``: the dynamics GP keeps step ``t``'s ``Q`` in its buffer ``t`` for the backward pass."""
+        if self.compile_step:  # inference tensors like every later step's (the compiled code is guarded on the kind)
+            m0, S0 = m0.clone(), S0.clone()
         means, covs, saved = [m0], [S0], []
         m, S = m0, S0
         for t in range(horizon):
@@ -254,6 +268,8 @@ class FusedStep:
         horizon, d = len(saved), S0.shape[0]
         g_means = S0.new_zeros(horizon + 1, d) if g_means is None else g_means
         g_covs = S0.new_zeros(horizon + 1, d, d) if g_covs is None else g_covs
+        if self.compile_step:  # see run
+            g_means, g_covs = g_means.clone(), g_covs.clone()
         g_m, g_S = g_means[horizon], g_covs[horizon]
         totals = [None] * len(needs)
         for t in reversed(range(horizon)):
@@ -264,6 +280,18 @@ class FusedStep:
 
     def forward(self, m, S, slot: int | None = None):
         """``((m', S'), saved)`` without autograd (``slot``: see :meth:`MomentMatchingGP.forward`)."""
+        if self.compile_step:
+            return _run_compiled("forward", lambda: self._forward(m, S, slot), self, m, S)
+        return self._forward(m, S, slot)
+
+    def backward(self, saved, g_m1, g_S1, needs):
+        """Gradients wrt ``(m, S, *policy.tensors)`` given those wrt ``(m', S')`` (``needs``: for the tensors)."""
+        if self.compile_step:
+            return _run_compiled("backward", lambda: self._backward(saved, g_m1, g_S1, needs), self, saved, g_m1, g_S1, needs)
+        return self._backward(saved, g_m1, g_S1, needs)
+
+    def _forward(self, m, S, slot: int | None = None):
+        """:meth:`forward`'s arithmetic."""
         d = self.layout.state_dim
         if self.trig_maps is None:
             ma, sa, ct, saved_trig = m, S, None, None
@@ -287,8 +315,8 @@ class FusedStep:
         saved = (S, ct, saved_trig, sa_p, cu, saved_pol, x_in, cd, saved_dyn, a)
         return (m + md, 0.5 * (s_next + s_next.T)), saved
 
-    def backward(self, saved, g_m1, g_S1, needs):
-        """Gradients wrt ``(m, S, *policy.tensors)`` given those wrt ``(m', S')`` (``needs``: for the tensors)."""
+    def _backward(self, saved, g_m1, g_S1, needs):
+        """:meth:`backward`'s arithmetic."""
         S, ct, saved_trig, sa_p, cu, saved_pol, x_in, cd, saved_dyn, a = saved
         d = self.layout.state_dim
         h = 0.5 * (g_S1 + g_S1.T)  # through the symmetrisation
@@ -311,6 +339,47 @@ class FusedStep:
             g_m = g_m + g_m_trig
             g_S = g_S + g_sc @ ct.T + g_S_trig
         return (g_m, g_S, *g_policy)
+
+
+def _step_forward(step: FusedStep, m, S):
+    return step._forward(m, S)  # no slot: Q is formed again in the backward pass (a kept buffer would be guarded on)
+
+
+def _step_backward(step: FusedStep, saved, g_m1, g_S1, needs):
+    return step._backward(saved, g_m1, g_S1, needs)
+
+
+#: ``torch.compile``'s backend for ``compile_step`` (environment variable ``HARNESS_PILCO_COMPILE_BACKEND``;
+#: the tests trace with ``aot_eager``, which makes no code: inductor's C++ build takes minutes on a small CPU)
+COMPILE_BACKEND = os.environ.get("HARNESS_PILCO_COMPILE_BACKEND", "inductor")
+_COMPILED: dict[tuple[str, str], object] = {}
+
+
+def _compiled(name: str):
+    """``torch.compile`` of :func:`_step_forward` or :func:`_step_backward`, made at first use (one per
+    process and backend: ``torch.compile`` caches the code per guarded input kind, e.g. per GP size)."""
+    key = (name, COMPILE_BACKEND)
+    fn = _COMPILED.get(key)
+    if fn is None:
+        fn = _COMPILED[key] = torch.compile({"forward": _step_forward, "backward": _step_backward}[name],
+                                            backend=COMPILE_BACKEND)
+    return fn
+
+
+def _run_compiled(name: str, eager, *args):
+    """The compiled step pass ``name`` on ``args``, its factorisations' checks collected in a fresh list
+    (the same length at every call: the compiled code is guarded on it) and handed on to the caller's
+    :func:`~plugins.pilco.kernels.deferred_checks`; outside one, a failed check redoes the pass with
+    ``eager()`` (the uncompiled pass, which raises or retries as usual)."""
+    outer = deferred_flags()
+    with deferred_checks() as flags:
+        result = _compiled(name)(*args)
+    if outer is not None:
+        outer.extend(flags)
+        return result
+    if flags and bool(torch.cat([f.reshape(-1) for f in flags]).ne(0).any()):
+        return eager()
+    return result
 
 
 @lru_cache(maxsize=64)
@@ -358,12 +427,15 @@ def rollout(
     layout: StateLayout,
     mean_only: bool = False,
     policy_noise: torch.Tensor | None = None,
+    compile_step: bool = False,
 ) -> tuple[torch.Tensor, torch.Tensor]:
     """Predicted state distributions over ``horizon`` steps from ``N(m0, S0)``.
 
     ``posterior``: the dynamics GP, or a :class:`MomentMatchingGP` of it kept across rollouts (as
     :class:`~plugins.pilco.objective.PolicyObjective` does) to reuse its work buffers.
     ``policy_noise``: ``(p, p)`` measurement noise on the policy's input (:func:`propagate_step`).
+    ``compile_step``: the fused rollout's steps as compiled code (:class:`FusedStep`; no effect on the
+    autograd path).
     Returns means ``(H+1, D)`` and covariances ``(H+1, D, D)``; index 0 is the initial state.
     """
     dynamics = posterior if isinstance(posterior, MomentMatchingGP) else MomentMatchingGP(posterior)
@@ -375,7 +447,7 @@ def rollout(
         raise ValueError(f"the dynamics GP takes {posterior.input_dim} inputs; layout + controls give {expected}")
     policy_moments = controller.moment_map()
     if isinstance(policy_moments, MomentStage) and not dynamics.has_grad:
-        return FusedStep(dynamics, policy_moments, layout, mean_only, policy_noise).rollout(m0, S0, horizon)
+        return FusedStep(dynamics, policy_moments, layout, mean_only, policy_noise, compile_step).rollout(m0, S0, horizon)
     means, covs = [m0], [S0]
     m, S = m0, S0
     for _ in range(horizon):
