@@ -161,7 +161,7 @@ def profile(args, posterior) -> list[str]:
         objective(theta)
         torch.cuda.synchronize()
     events = prof.key_averages()
-    launches = sum(e.count for e in events if e.key in ("cudaLaunchKernel", "cuLaunchKernel", "cudaLaunchKernelExC"))
+    launches = _launches(events)
     syncs = sum(e.count for e in events if "Synchronize" in e.key or e.key in ("cudaMemcpyAsync", "cudaMemcpy"))
     gpu_total = sum(getattr(e, "self_device_time_total", getattr(e, "self_cuda_time_total", 0)) for e in events) / 1e3
     lines = [f"One J + dJ on the GPU, every operation launched (no graph), under the profiler: {launches} kernel launches, {syncs} host-device copies or "
@@ -171,6 +171,15 @@ def profile(args, posterior) -> list[str]:
     for e in sorted(events, key=lambda e: -getattr(e, key))[:15]:
         lines.append(f"| `{e.key[:60]}` | {e.count} | {getattr(e, key) / 1e3:.2f} | {e.self_cpu_time_total / 1e3:.2f} |")
     return lines
+
+
+#: the profiler's names of a kernel launch (runtime and driver API; Triton's kernels come through the driver's)
+LAUNCH_EVENTS = ("cudaLaunchKernel", "cuLaunchKernel", "cudaLaunchKernelExC", "cuLaunchKernelEx")
+
+
+def _launches(events) -> int:
+    """Kernel launches among a profile's ``key_averages()``."""
+    return sum(e.count for e in events if e.key in LAUNCH_EVENTS)
 
 
 def kernel_launches(objective) -> int:
@@ -185,14 +194,14 @@ def kernel_launches(objective) -> int:
         objective(theta)
         torch.cuda.synchronize()
     objective.cuda_graph = graph
-    return sum(e.count for e in prof.key_averages() if e.key in ("cudaLaunchKernel", "cuLaunchKernel", "cudaLaunchKernelExC",
-                                                                 "cuLaunchKernelEx", "cudaGraphLaunch"))
+    return _launches(prof.key_averages())
 
 
-def compiled_columns(cpu, make, theta, J_c, g_c, repeats: int) -> list[str]:
+def compiled_columns(make, plain, theta, J_c, g_c, repeats: int) -> list[str]:
     """The ``compile_step`` objective's cells for :func:`task_objectives`: first J + dJ s (compiling, capturing),
-    ms replayed, kernels launched uncompiled / compiled, J and dJ against the CPU."""
-    plain, compiled = make(False, False), make(True, True)
+    ms replayed, kernels launched by ``plain`` (the uncompiled objective, no graph) / compiled, J and dJ against
+    the CPU's ``J_c``, ``g_c``; ``make(compile_step, cuda_graph)`` builds the GPU objective."""
+    compiled = make(True, True)
     first: list[float] = []
     t = time_objective(compiled, repeats, first)
     J_k, g_k = compiled(theta)
@@ -235,7 +244,7 @@ def task_objectives(repeats: int, compiled: bool = False) -> list[str]:
         cells = [name, f"{t_cpu:.1f}", f"{t_eager:.1f}", graph, f"{t_cpu / t_graph:.0f}x", f"{abs(J_g - J_c) / abs(J_c):.1e}",
                  f"{np.linalg.norm(g_g - g_c) / np.linalg.norm(g_c):.1e}"]
         if compiled:
-            cells += compiled_columns(cpu, make, theta, J_c, g_c, repeats)
+            cells += compiled_columns(make, gpus[0], theta, J_c, g_c, repeats)
         lines.append("| " + " | ".join(cells) + " |")
         print(lines[-1], flush=True)
     return lines

@@ -30,7 +30,7 @@ import numpy as np
 import torch
 
 from plugins.pilco.controllers import MomentMap, MomentStage
-from plugins.pilco.kernels import deferred_checks, deferred_flags
+from plugins.pilco.kernels import any_failed, deferred_checks, deferred_flags
 from plugins.pilco.moments import MomentMatchingGP
 from plugins.pilco.posterior import GPPosterior
 from plugins.pilco.trig import _doubled, _sin_backward, _sin_forward, augment_trig
@@ -377,7 +377,7 @@ def _run_compiled(name: str, eager, *args):
     if outer is not None:
         outer.extend(flags)
         return result
-    if flags and bool(torch.cat([f.reshape(-1) for f in flags]).ne(0).any()):
+    if flags and bool(any_failed(flags, flags[0])):
         return eager()
     return result
 
