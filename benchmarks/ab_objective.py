@@ -9,7 +9,8 @@ Usage::
 (``kernel=fused``, ``symmetric_pairs=false``, ``threads=2``), ``torch_threads=K``: torch's intra-op threads while
 that side runs (default ``--torch-threads``; the learner gives torch all its threads with ``kernel=torch`` and one
 with a compiled kernel, which runs its own: ``--a kernel=torch,torch_threads=2 --b kernel=fused,threads=2`` compares
-the two as a two-core run uses them), and ``moments=PATH``: take the class from
+the two as a two-core run uses them), ``compile_step=true``: that side's rollout steps as ``torch.compile``'d code
+(the objective's ``compile_step``; needs ``kernel=torch``; its first J + dJ, the build, is in the warm-up), and ``moments=PATH``: take the class from
 another checkout's ``plugins/pilco/moments.py`` (loaded under its own module name; what it imports
 comes from this checkout, so it must fit this checkout's kernels: for a change inside moment matching
 itself, e.g. ``--a moments=/tmp/old/plugins/pilco/moments.py``). Each configuration's objective is built
@@ -105,18 +106,24 @@ def _measure(config: str, sides: dict[str, dict], rounds: int, torch_threads: in
     obj = build(config)
     models = {}
     for name, kwargs in sides.items():
-        options = {k: v for k, v in kwargs.items() if k not in ("moments", "torch_threads")}
+        options = {k: v for k, v in kwargs.items() if k not in ("moments", "torch_threads", "compile_step")}
+        if kwargs.get("compile_step") and options.get("kernel") != "torch":
+            raise SystemExit(f"--a/--b: compile_step=true needs kernel=torch on the same side (got {kwargs})")
         models[name] = moments_class(kwargs.get("moments"))(obj.posterior, **options)
     theta = obj.get_flat()
     results, times = {}, {name: [] for name in sides}
 
     def use(name: str) -> None:
         obj.dynamics = models[name]
+        obj.compile_step = bool(sides[name].get("compile_step", False))
         torch.set_num_threads(int(sides[name].get("torch_threads", torch_threads)))
 
+    first = {}
     for name in models:  # warm-up (compiles the kernels) and each side's own result
         use(name)
+        t0 = time.perf_counter()
         obj(theta)
+        first[name] = time.perf_counter() - t0
         results[name] = obj(theta)
     threaded = wall_clock(sides, torch_threads)
     clock = time.perf_counter if threaded else time.process_time
@@ -133,7 +140,7 @@ def _measure(config: str, sides: dict[str, dict], rounds: int, torch_threads: in
     J_ulp, g_ulp = obj(nudged)
     (J_a, g_a), (J_b, g_b) = results[a], results[b]
     return dict(
-        median={k: 1e3 * float(np.median(v)) for k, v in times.items()}, minimum={k: 1e3 * min(v) for k, v in times.items()},
+        first=first, median={k: 1e3 * float(np.median(v)) for k, v in times.items()}, minimum={k: 1e3 * min(v) for k, v in times.items()},
         rel_J=abs(J_b - J_a) / abs(J_a), rel_dJ=float(np.linalg.norm(g_b - g_a) / np.linalg.norm(g_a)),
         ulp_J=abs(J_ulp - J_a) / abs(J_a), ulp_dJ=float(np.linalg.norm(g_ulp - g_a) / np.linalg.norm(g_a)), clock=clock.__name__,
     )
@@ -164,7 +171,7 @@ def main() -> None:
               flush=True)
         rows.append(
             f"| {config} | {m['median']['a']:.0f} / {m['median']['b']:.0f} | {m['minimum']['a']:.0f} / {m['minimum']['b']:.0f} "
-            f"| {m['median']['a'] / m['median']['b']:.2f} | {m['rel_J']:.1e} | {m['rel_dJ']:.1e} | {m['ulp_J']:.1e}, {m['ulp_dJ']:.1e} |"
+            f"| {m['median']['a'] / m['median']['b']:.2f} | {m['first']['a']:.1f} / {m['first']['b']:.1f} | {m['rel_J']:.1e} | {m['rel_dJ']:.1e} | {m['ulp_J']:.1e}, {m['ulp_dJ']:.1e} |"
         )
     clock = "wall" if wall_clock(sides, args.torch_threads) else "CPU"
     lines = [
@@ -172,11 +179,11 @@ def main() -> None:
         "",
         f"Command: `{command_line(__file__)}`  ",
         f"{machine_line(load0)}  ",
-        f"a = `{args.a}`, b = `{args.b}` (`MomentMatchingGP` arguments); {args.rounds} J + dJ per side and configuration, "
+        f"a = `{args.a}`, b = `{args.b}` (`MomentMatchingGP` arguments; `compile_step`: the objective's); {args.rounds} J + dJ per side and configuration, "
         f"alternating a b / b a; torch threads {args.torch_threads} unless a side says; {clock} time.",
         "",
-        f"| configuration | median {clock} ms a / b | min ms a / b | a / b | rel. diff J | rel. diff dJ (2-norm) | a's own change of J, dJ for theta +- 1-2 ulp |",
-        "|---|---|---|---|---|---|---|",
+        f"| configuration | median {clock} ms a / b | min ms a / b | a / b | first J + dJ wall s a / b (builds) | rel. diff J | rel. diff dJ (2-norm) | a's own change of J, dJ for theta +- 1-2 ulp |",
+        "|---|---|---|---|---|---|---|---|",
         *rows,
     ]
     write_report(lines, args.out, echo=False)

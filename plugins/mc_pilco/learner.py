@@ -111,9 +111,14 @@ class McPilco(Learner):
                low=0.0, high=0.9),
         Option("dropout_step", float, 0.125, "dropout reduction when the search stalls (paper: 0.125)", low=0.0, high=1.0),
         Option("lr_decay", float, 0.5, "learning-rate factor at each dropout reduction", low=0.0, high=1.0),
+        Option("lr_reductions", int, 0, "stalls at dropout 0 that multiply the learning rate by lr_decay before the next one "
+               "ends the search (0: the first ends it, the paper's rule)", low=0),
         Option("keep", str, "last", "the policy a search hands over: last (the last Adam step's, the paper's) or best (of the "
                "start and each window's end, the one a fixed set of particles rates lowest: a search that ends above where it "
                "started hands over its start)", choices=("last", "best")),
+        Option("revert", bool, False, "with keep=best: a window whose end the fixed particles do not rate below the best so "
+               "far sends the search back to the best, Adam restarted at lr * lr_decay, as one of lr_reductions; once they "
+               "are used up, such a window ends the search (default off, the paper's search)"),
         Option("step_scale", str, "none", "the units Adam steps the policy's parameters in (it moves each by about the "
                "learning rate whatever its gradient): none (each in its own, the paper's) or inputs (a weight on policy input "
                "j in units of 1/std_j, an RBF centre's coordinate j in units of std_j, std_j the spread of input j over every "
@@ -144,6 +149,9 @@ class McPilco(Learner):
         if o["target_scale"] is not None and (o["centres"] != "spread" or self.preset.controller != "rbf"):
             raise OptionError(f"mc-pilco on {spec.name}: target_scale sets the initial targets of an RBF policy with spread "
                               "centres; drop it, or use controller=rbf with centres=spread")
+        if o["revert"] and o["keep"] != "best":
+            raise OptionError("mc-pilco: revert=true goes back to the best parameters of a search, which only keep=best "
+                              "tracks: add --set learner.keep=best, or drop revert")
         if o["cost"] == "paper":
             from plugins.mc_pilco.costs import PAPER_COSTS
 
@@ -251,7 +259,7 @@ class McPilco(Learner):
         search = optimise_particles(objective, max_steps=o["max_steps"], lr=o["lr"], dropout=o["dropout"],
                                     dropout_step=o["dropout_step"], lr_decay=o["lr_decay"], window=o["window"],
                                     min_improvement=o["min_improvement"], seed=1000 * self.seed + trial, keep=o["keep"],
-                                    step_scales=scales, on_step=shown)
+                                    lr_reductions=o["lr_reductions"], revert=o["revert"], step_scales=scales, on_step=shown)
         return objective, search
 
     @classmethod
@@ -333,6 +341,7 @@ class McPilco(Learner):
                 "J_last": search.J_last, "kept_step": float(search.kept_step),
                 "policy_opt_seconds": search.seconds, "policy_steps": float(search.steps),
                 "policy_skipped_steps": float(search.skipped), "dropout_reductions": float(search.reductions),
+                "lr_reductions": float(search.lr_reductions), "reverts": float(search.reverts),
                 "final_dropout": search.final_dropout, "planning_horizon": float(self.horizon), "planning_basis": float(posterior.inputs.shape[0]),
                 "policy_parameters": float(sum(p.numel() for p in controller.parameters())),
             } | smoothing

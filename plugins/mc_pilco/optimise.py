@@ -6,12 +6,18 @@ noisy, so progress is judged on window means (the paper's monitoring signal, as 
 instead of a filtered one): when the mean of the last ``window`` estimates is not at least
 ``min_improvement`` (relative) below the mean of the window before, the dropout probability drops by
 ``dropout_step`` and the learning rate is multiplied by ``lr_decay``; once dropout is 0 and
-progress stalls again, or after ``max_steps``, the search ends. The parameters at the end are
+progress stalls again, or after ``max_steps``, the search ends. With ``lr_reductions`` = k > 0 a stall at
+dropout 0 instead multiplies the learning rate by ``lr_decay`` again, up to k times, before the next
+one ends the search (not the paper's rule: a search without dropout otherwise never lowers its rate). The parameters at the end are
 kept (``keep="last"``, the paper's rule); with ``keep="best"`` the search keeps, of its start, the
 end of each window and its end, the parameters whose estimate on one fixed set of particles (no
 dropout, the random numbers of ``J_before``/``J_after``) is lowest: common random numbers make those
 estimates comparable, which single steps' noisy estimates are not. It costs one estimate without
-gradient per window.
+gradient per window. With ``keep="best"`` and ``revert`` the search also backtracks (not the paper's rule):
+a window end that the fixed particles do not rate below the best so far sends the parameters back to the
+best, restarts Adam there at the learning rate times ``lr_decay`` and counts as one of the
+``lr_reductions``; once they are used up, such a window ends the search. A search that runs uphill from
+its start then retries with smaller steps instead of climbing on.
 
 Adam moves every parameter by about the learning rate per step whatever its gradient's size, so the
 parameters' units matter. ``step_scales`` (one tensor per parameter, its shape) sets them: Adam runs
@@ -42,7 +48,9 @@ class ParticleSearchResult:
         J_last: the same estimate at the last step's parameters (= ``J_after`` with ``keep="last"``).
         kept_step: the Adam step whose parameters were kept (0: the start; ``steps``: the last).
         steps: Adam steps taken; skipped: steps whose estimate was not finite (no update).
-        reductions: dropout reductions; final_dropout, final_lr: their values at the end.
+        reductions: dropout reductions; lr_reductions: learning-rate reductions at dropout 0 (option
+            ``lr_reductions``; with ``revert``, its backtracks are among them); reverts: backtracks to the best
+            parameters (``revert``); final_dropout, final_lr: their values at the end.
         seconds: wall time; trace: window means of the estimates (with dropout), for plots.
     """
 
@@ -53,6 +61,8 @@ class ParticleSearchResult:
     steps: int
     skipped: int
     reductions: int
+    lr_reductions: int
+    reverts: int
     final_dropout: float
     final_lr: float
     seconds: float
@@ -80,12 +90,14 @@ def adam_step(opt: torch.optim.Adam, params: list[torch.Tensor], grads: list[tor
 
 def optimise_particles(objective: ParticleObjective, *, max_steps: int, lr: float, dropout: float, dropout_step: float,
                        lr_decay: float, window: int, min_improvement: float, seed: int, keep: str = "last",
-                       step_scales: list[torch.Tensor] | None = None,
+                       lr_reductions: int = 0, revert: bool = False, step_scales: list[torch.Tensor] | None = None,
                        on_step: Callable[[int, float, float], None] | None = None) -> ParticleSearchResult:
     """Minimise ``J_hat`` over the controller's parameters, left at the last step's values
     (``keep="last"``) or at those of the start or a window's end that the fixed particles rate lowest
     (``keep="best"``). ``step_scales``: Adam in the units ``theta / scale`` (see the module docstring;
     one tensor per :meth:`~plugins.mc_pilco.particles.ParticleObjective.parameters` entry, its shape).
+    ``lr_reductions``: stalls at dropout 0 (and with ``revert``, windows that end above the best so far) that lower
+    the learning rate (by ``lr_decay``) before one ends the search; ``revert`` needs ``keep="best"``.
 
     ``on_step(step, window mean of J_hat or nan before the first window, dropout)``, if given, is
     called after every Adam step (for progress)."""
@@ -99,23 +111,29 @@ def optimise_particles(objective: ParticleObjective, *, max_steps: int, lr: floa
 
     if keep not in ("last", "best"):
         raise ValueError(f"keep must be 'last' or 'best', got {keep!r}")
+    if revert and keep != "best":
+        raise ValueError("revert=True goes back to the best parameters so far, which only keep='best' tracks")
     if step_scales is not None and [tuple(q.shape) for q in step_scales] != [tuple(q.shape) for q in params]:
         raise ValueError(f"step_scales must have the parameters' shapes {[tuple(q.shape) for q in params]}, got "
                          f"{[tuple(q.shape) for q in step_scales]}")
     J_before = checked()
     best = (J_before, 0, [q.detach().clone() for q in params]) if keep == "best" else None  # (estimate, step, parameters)
 
-    def candidate(step: int) -> None:  # keep="best": the parameters after `step` if the fixed particles rate them lower
+    def candidate(step: int) -> bool:  # keep="best": the parameters after `step` if the fixed particles rate them lower
         nonlocal best
         value = checked()
         if value < best[0]:
             best = (value, step, [q.detach().clone() for q in params])
+            return True
+        return False
 
     opt = torch.optim.Adam(params, lr=lr)
     gen = torch.Generator().manual_seed(int(seed))
     estimates: list[float] = []
     trace: list[float] = []
-    skipped = reductions = steps = 0
+    if int(lr_reductions) < 0:
+        raise ValueError(f"lr_reductions must be >= 0, got {lr_reductions}")
+    skipped = reductions = late = reverts = steps = 0
     p, rate = float(dropout), float(lr)
     for steps in range(1, int(max_steps) + 1):
         J, usable, grads = objective.value_and_grad(gen, p)  # on a GPU: a CUDA graph replayed (cuda_graph)
@@ -126,13 +144,25 @@ def optimise_particles(objective: ParticleObjective, *, max_steps: int, lr: floa
         estimates.append(J)
         if len(estimates) % window == 0:
             trace.append(float(np.mean(estimates[-window:])))
-            if keep == "best":
-                candidate(steps)
-            if len(trace) >= 2 and trace[-2] - trace[-1] < min_improvement * abs(trace[-2]):
-                if p <= 0.0:
+            if keep == "best" and not candidate(steps) and revert:
+                if late >= int(lr_reductions):
                     break
-                p, rate = max(0.0, p - dropout_step), rate * lr_decay
-                reductions += 1
+                with torch.no_grad():  # back to the best so far, Adam afresh with smaller steps
+                    for q, b in zip(params, best[2]):
+                        q.copy_(b)
+                rate *= lr_decay
+                late += 1
+                reverts += 1
+                opt = torch.optim.Adam(params, lr=rate)
+            elif len(trace) >= 2 and trace[-2] - trace[-1] < min_improvement * abs(trace[-2]):
+                if p > 0.0:
+                    p, rate = max(0.0, p - dropout_step), rate * lr_decay
+                    reductions += 1
+                elif late < int(lr_reductions):
+                    rate *= lr_decay
+                    late += 1
+                else:
+                    break
                 for group in opt.param_groups:
                     group["lr"] = rate
         if on_step is not None:
@@ -145,5 +175,5 @@ def optimise_particles(objective: ParticleObjective, *, max_steps: int, lr: floa
             for q, b in zip(params, best[2]):
                 q.copy_(b)
     return ParticleSearchResult(J_before=J_before, J_after=J_after, J_last=J_last, kept_step=kept_step, steps=steps,
-                                skipped=skipped, reductions=reductions, final_dropout=p, final_lr=rate,
+                                skipped=skipped, reductions=reductions, lr_reductions=late, reverts=reverts, final_dropout=p, final_lr=rate,
                                 seconds=time.perf_counter() - start, trace=trace)

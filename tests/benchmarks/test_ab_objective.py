@@ -63,3 +63,25 @@ def test_a_side_can_run_torch_on_its_own_threads(monkeypatch):
     assert m["clock"] == "perf_counter" and m["rel_J"] < 1e-10 and m["rel_dJ"] < 1e-7
     assert wall_clock({"a": {"torch_threads": 2}, "b": {}}, 1) and not wall_clock({"a": {}, "b": {}}, 1)
     assert wall_clock({"a": {"threads": 2}, "b": {}}, 1) and wall_clock({"a": {}, "b": {}}, 2)
+
+
+def test_a_side_can_compile_its_rollout_steps(monkeypatch):
+    """``compile_step=true``: that side's objective runs each rollout step as torch.compile'd code (traced here with
+    aot_eager, no C++ build), the other side's does not; the same maths, so J and dJ agree to round-off; the build is
+    the first J + dJ, reported per side; a side without kernel=torch fails with the fix."""
+    import torch._dynamo
+    from torch._dynamo.utils import counters
+
+    from plugins.pilco import propagate
+
+    monkeypatch.setattr(propagate, "COMPILE_BACKEND", "aot_eager")
+    torch._dynamo.reset()
+    counters.clear()
+    try:
+        m = measure("cart-pole full n=100", {"a": {"kernel": "torch"}, "b": {"kernel": "torch", "compile_step": True}}, rounds=1)
+        assert counters["stats"]["unique_graphs"] == 2  # one step's forward and backward, compiled once
+    finally:
+        torch._dynamo.reset()
+    assert m["rel_J"] < 1e-12 and m["rel_dJ"] < 1e-10 and set(m["first"]) == {"a", "b"}
+    with pytest.raises(SystemExit, match="compile_step=true needs kernel=torch"):
+        measure("cart-pole full n=100", {"a": {"kernel": "fused", "compile_step": True}, "b": {}}, rounds=1)

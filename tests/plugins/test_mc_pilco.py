@@ -157,6 +157,78 @@ def test_optimiser_lowers_the_estimate_and_reduces_dropout_when_it_stalls() -> N
     assert len(result.trace) == (result.steps - result.skipped) // 10
 
 
+def test_lr_reductions_lower_the_rate_at_dropout_zero_before_a_stall_ends_the_search() -> None:
+    """Without dropout the paper's rule ends the search at its first stall; with lr_reductions=k the
+    first k stalls halve the learning rate instead (the steps before the first stall are the same
+    ones), and the (k+1)-th ends it."""
+    kwargs = dict(max_steps=400, lr=0.2, dropout=0.0, dropout_step=0.125, lr_decay=0.5, window=10, min_improvement=0.01,
+                  seed=0)
+    runs = {}
+    for k in (0, 2):
+        obj = _objective("rbf-two-controls")
+        runs[k] = optimise_particles(_particles(obj, 64, 8), lr_reductions=k, **kwargs)
+    plain, cut = runs[0], runs[2]
+    assert plain.steps < kwargs["max_steps"] and plain.lr_reductions == 0 and plain.final_lr == 0.2
+    assert cut.lr_reductions == 2 and cut.reductions == 0 and cut.final_lr == pytest.approx(0.2 * 0.5**2)
+    assert cut.steps > plain.steps and cut.trace[:len(plain.trace)] == plain.trace
+    stalls = [i for i in range(1, len(cut.trace)) if cut.trace[i - 1] - cut.trace[i] < 0.01 * abs(cut.trace[i - 1])]
+    assert len(stalls) == 3 and stalls[-1] == len(cut.trace) - 1  # two cuts, then the third stall ends it
+    with pytest.raises(ValueError, match="lr_reductions must be >= 0"):
+        optimise_particles(_particles(_objective("rbf-two-controls"), 64, 8), lr_reductions=-1, **kwargs)
+
+
+def test_revert_goes_back_to_the_best_parameters_with_smaller_steps() -> None:
+    """keep=best with revert: at lr 1 the plain search runs uphill and hands back its start; with revert a window
+    the fixed particles rate no better than the best so far sends the parameters back there (the search's
+    J estimates the best's own value again right after) and halves the rate, up to lr_reductions times, after
+    which such a window ends the search. It ends below its start, where the plain one did not; every window end
+    that the checks rated above the best so far was followed by a step from the best's parameters."""
+    kwargs = dict(max_steps=400, lr=1.0, dropout=0.0, dropout_step=0.125, lr_decay=0.5, window=10, min_improvement=0.01,
+                  seed=0, keep="best")
+    plain = optimise_particles(_particles(_objective("rbf-two-controls"), 64, 8), **kwargs)
+    assert plain.kept_step == 0 and plain.reverts == 0
+    obj = _objective("rbf-two-controls")
+    particles = _particles(obj, 64, 8)
+    events = []  # ("check", its value, the parameters it rated) and ("step", the parameters the Adam step starts from)
+    real, real_step = particles.value, particles.value_and_grad
+    params = lambda: [q.detach().clone() for q in obj.controller.parameters()]  # noqa: E731
+
+    def value(gen):
+        out = real(gen)
+        events.append(("check", float(out), params()))
+        return out
+
+    def value_and_grad(gen, p):
+        events.append(("step", None, params()))
+        return real_step(gen, p)
+
+    particles.value, particles.value_and_grad = value, value_and_grad
+    result = optimise_particles(particles, lr_reductions=3, revert=True, **kwargs)
+    assert 1 <= result.reverts <= 3 and result.lr_reductions >= result.reverts
+    assert result.final_lr == pytest.approx(0.5**result.lr_reductions)
+    assert result.J_after < result.J_before and result.kept_step > 0
+    with torch.no_grad():
+        assert float(real(torch.Generator().manual_seed(1))) == result.J_after  # the handed-over parameters
+    best, backtracks = (events[0][1], events[0][2]), 0
+    for i, (kind, v, theta) in enumerate(events[1:-1], start=1):  # the last check rates the end, after the loop
+        if kind != "check":
+            continue
+        if v < best[0]:
+            best = (v, theta)
+        elif i + 1 < len(events) and events[i + 1][0] == "step":  # rated above the best: the next step starts from it
+            assert all(torch.equal(a, b) for a, b in zip(events[i + 1][2], best[1]))
+            backtracks += 1
+    assert backtracks == result.reverts
+    with pytest.raises(ValueError, match="only keep='best' tracks"):
+        optimise_particles(particles, **{**kwargs, "keep": "last"}, revert=True)
+    from harness.discovery import load_task
+    from harness.errors import OptionError
+
+    McPilco(load_task("cartpole")().spec, {"revert": True, "keep": "best"}, 0)
+    with pytest.raises(OptionError, match="only keep=best tracks: add --set learner.keep=best"):
+        McPilco(load_task("cartpole")().spec, {"revert": True}, 0)
+
+
 @pytest.mark.parametrize("lr, kept", [(0.2, "a window's end"), (0.5, "the start")])
 def test_keep_best_hands_over_the_parameters_the_fixed_particles_rate_lowest(lr, kept) -> None:
     """keep="best" takes the same Adam steps as keep="last" (its checks draw from their own generator)
