@@ -113,6 +113,9 @@ def optimise_particles(objective: ParticleObjective, *, max_steps: int, lr: floa
         raise ValueError(f"keep must be 'last' or 'best', got {keep!r}")
     if revert and keep != "best":
         raise ValueError("revert=True goes back to the best parameters so far, which only keep='best' tracks")
+    if int(lr_reductions) < 0:
+        raise ValueError(f"lr_reductions must be >= 0, got {lr_reductions}")
+    lr_reductions = int(lr_reductions)
     if step_scales is not None and [tuple(q.shape) for q in step_scales] != [tuple(q.shape) for q in params]:
         raise ValueError(f"step_scales must have the parameters' shapes {[tuple(q.shape) for q in params]}, got "
                          f"{[tuple(q.shape) for q in step_scales]}")
@@ -127,12 +130,15 @@ def optimise_particles(objective: ParticleObjective, *, max_steps: int, lr: floa
             return True
         return False
 
+    def restore(values: list[torch.Tensor]) -> None:  # the parameters set to kept values
+        with torch.no_grad():
+            for q, b in zip(params, values):
+                q.copy_(b)
+
     opt = torch.optim.Adam(params, lr=lr)
     gen = torch.Generator().manual_seed(int(seed))
     estimates: list[float] = []
     trace: list[float] = []
-    if int(lr_reductions) < 0:
-        raise ValueError(f"lr_reductions must be >= 0, got {lr_reductions}")
     skipped = reductions = late = reverts = steps = 0
     p, rate = float(dropout), float(lr)
     for steps in range(1, int(max_steps) + 1):
@@ -145,11 +151,9 @@ def optimise_particles(objective: ParticleObjective, *, max_steps: int, lr: floa
         if len(estimates) % window == 0:
             trace.append(float(np.mean(estimates[-window:])))
             if keep == "best" and not candidate(steps) and revert:
-                if late >= int(lr_reductions):
+                if late >= lr_reductions:
                     break
-                with torch.no_grad():  # back to the best so far, Adam afresh with smaller steps
-                    for q, b in zip(params, best[2]):
-                        q.copy_(b)
+                restore(best[2])  # back to the best so far, Adam afresh with smaller steps
                 rate *= lr_decay
                 late += 1
                 reverts += 1
@@ -158,7 +162,7 @@ def optimise_particles(objective: ParticleObjective, *, max_steps: int, lr: floa
                 if p > 0.0:
                     p, rate = max(0.0, p - dropout_step), rate * lr_decay
                     reductions += 1
-                elif late < int(lr_reductions):
+                elif late < lr_reductions:
                     rate *= lr_decay
                     late += 1
                 else:
@@ -171,9 +175,7 @@ def optimise_particles(objective: ParticleObjective, *, max_steps: int, lr: floa
     J_after, kept_step = J_last, steps
     if keep == "best" and not J_last <= best[0]:  # a tie keeps the last
         J_after, kept_step = best[0], best[1]
-        with torch.no_grad():
-            for q, b in zip(params, best[2]):
-                q.copy_(b)
+        restore(best[2])
     return ParticleSearchResult(J_before=J_before, J_after=J_after, J_last=J_last, kept_step=kept_step, steps=steps,
                                 skipped=skipped, reductions=reductions, lr_reductions=late, reverts=reverts, final_dropout=p, final_lr=rate,
                                 seconds=time.perf_counter() - start, trace=trace)

@@ -179,8 +179,7 @@ def test_lr_reductions_lower_the_rate_at_dropout_zero_before_a_stall_ends_the_se
 
 def test_revert_goes_back_to_the_best_parameters_with_smaller_steps() -> None:
     """keep=best with revert: at lr 1 the plain search runs uphill and hands back its start; with revert a window
-    the fixed particles rate no better than the best so far sends the parameters back there (the search's
-    J estimates the best's own value again right after) and halves the rate, up to lr_reductions times, after
+    the fixed particles rate no better than the best so far sends the parameters back there and halves the rate, up to lr_reductions times, after
     which such a window ends the search. It ends below its start, where the plain one did not; every window end
     that the checks rated above the best so far was followed by a step from the best's parameters."""
     kwargs = dict(max_steps=400, lr=1.0, dropout=0.0, dropout_step=0.125, lr_decay=0.5, window=10, min_improvement=0.01,
