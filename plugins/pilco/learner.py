@@ -152,6 +152,10 @@ class Pilco(Learner):
                "last trial's realised cost was within this fraction of its prediction (stuck in an optimum the model "
                "is sure of), also search from fresh initial parameters and keep the lower J (default: the task preset's, "
                "dm_control cart-pole 0.05, else off; 0 = off)", low=0.0),
+        Option("early_starts", int, 1, "policy searches in each of the first early_start_trials trials: from the "
+               "controller handed over and from K-1 fresh initial controllers (seeded by run seed, trial and start), "
+               "the lowest J kept (1 = off): the first policies decide which data the model sees", low=1),
+        Option("early_start_trials", int, 3, "how many of the first trials search from early_starts starts", low=1),
         Option("policy_max_iterations", int, None, "L-BFGS iterations (~line searches) per policy search (default: task preset, 150)", low=1),
         Option("policy_max_evaluations", int, None, "J+dJ evaluations per policy search (default: task preset, 300; unicycle 150)", low=1),
         Option("threads", int, None, "CPU threads (default: the harness's choice, all cores for harness bench and 1 per "
@@ -325,6 +329,9 @@ class Pilco(Learner):
                 except NumericalError:
                     objective.set_flat(previous)  # keep the previous policy, say so in the metrics
                     search, failed = None, 1.0
+                early = {}
+                if o["early_starts"] > 1 and trial <= o["early_start_trials"] and search is not None:
+                    search, early = self._more_starts(objective, search, trial, kernel, threads, o["early_starts"] - 1)
                 fresh = None
                 if self.fresh_start_tol is not None and search is not None and stalled(
                         search.J_after, last_J, _predicted_sum(predicted), _realised_sum(interaction, predicted), self.fresh_start_tol):
@@ -337,6 +344,7 @@ class Pilco(Learner):
                     self.report_status(f"J_sampled: {o['sample_particles']} particles through the GP")
                 sampled = sampled_costs(objective, o["sample_particles"], seed=1000 * self.seed + trial) if o["sample_particles"] else None
                 self.metrics = self._trial_metrics(fit, search, failed, predicted, objective.num_params) | smoothing
+                self.metrics.update(early)
                 if self.fresh_start_tol is not None:
                     self.metrics.update(fresh_start=float(fresh is not None), fresh_start_kept=float(bool(fresh and fresh["kept"])),
                                         J_fresh_start=fresh["J"] if fresh else math.nan)
@@ -397,21 +405,20 @@ class Pilco(Learner):
         with torch_threads(1 if kernel in COMPILED_KERNELS else threads):
             return optimise_policy(objective, self.preset.policy_max_iterations, budget, on_evaluation=shown)
 
-    def _fresh_start(self, objective: PolicyObjective, controller: SquashedController, search, trial: int, kernel: str,
-                     threads: int) -> tuple[Any, dict[str, Any]]:
-        """A second policy search from fresh initial parameters (seeded by run seed and trial); the
-        lower J of the two is left in the controller. Returns the search to report (the kept one, with
-        both searches' time and evaluations) and ``{"J": fresh J, "kept": bool}``."""
+    def _search_from_fresh(self, objective: PolicyObjective, controller: SquashedController, search, seed: int, kernel: str,
+                           threads: int, what: str) -> tuple[Any, float]:
+        """A further policy search from a fresh initial controller (drawn with ``seed``); the lower J of it and
+        ``search`` (the one that left the controller where it is) is left in the controller. Returns the search to
+        report (the kept one, with both searches' time and evaluations) and the fresh search's J (NaN if it failed)."""
         import torch
 
         kept_theta = objective.get_flat()
-        generator = torch.Generator().manual_seed(1_000_003 * (self.seed + 1) + trial)
-        controller.load_state_dict(self.new_controller(generator).state_dict())  # copied onto the controller's device
+        controller.load_state_dict(self.new_controller(torch.Generator().manual_seed(seed)).state_dict())  # onto its device
         try:
-            second = self.search_policy(objective, kernel, threads, "policy search from fresh parameters")
+            second = self.search_policy(objective, kernel, threads, what)
         except NumericalError:
             objective.set_flat(kept_theta)
-            return search, {"J": math.nan, "kept": False}
+            return search, math.nan
         better = second.J_after < search.J_after
         if not better:
             objective.set_flat(kept_theta)
@@ -419,7 +426,35 @@ class Pilco(Learner):
         combined = replace(winner, J_before=search.J_before, seconds=search.seconds + second.seconds,
                            evaluations=search.evaluations + second.evaluations, iterations=search.iterations + second.iterations,
                            failed_evaluations=search.failed_evaluations + second.failed_evaluations)
-        return combined, {"J": float(second.J_after), "kept": better}
+        return combined, float(second.J_after)
+
+    def _fresh_start(self, objective: PolicyObjective, controller: SquashedController, search, trial: int, kernel: str,
+                     threads: int) -> tuple[Any, dict[str, Any]]:
+        """The fresh-start rule's second policy search from fresh initial parameters (seeded by run seed and
+        trial); the lower J of the two is left in the controller. Returns the search to report (the kept one, with
+        both searches' time and evaluations) and ``{"J": fresh J, "kept": bool}``."""
+        combined, J = self._search_from_fresh(objective, controller, search, 1_000_003 * (self.seed + 1) + trial, kernel,
+                                              threads, "policy search from fresh parameters")
+        return combined, {"J": J, "kept": combined.J_after < search.J_after}
+
+    def _more_starts(self, objective: PolicyObjective, search, trial: int, kernel: str, threads: int,
+                     extra: int) -> tuple[Any, dict[str, float]]:
+        """``early_starts``: ``extra`` more policy searches from fresh initial controllers (seeded by run seed, trial
+        and start, apart from the fresh-start rule's seeds), the lowest J of all left in the controller. Returns the
+        search to report (the kept one, with all searches' time and evaluations) and the metrics ``early_start_kept``
+        (0: the search from the controller handed over, k: the k-th fresh start) and ``J_early_starts_worst`` (the
+        highest J any start ended at)."""
+        kept, worst = 0, search.J_after
+        for k in range(1, extra + 1):
+            seed = 2_000_003 * (self.seed + 1) + 1009 * trial + k
+            before = search.J_after
+            search, J = self._search_from_fresh(objective, objective.controller, search, seed, kernel, threads,
+                                                f"policy search from start {k + 1}/{extra + 1}")
+            if search.J_after < before:
+                kept = k
+            if math.isfinite(J):
+                worst = max(worst, J)
+        return search, {"early_start_kept": float(kept), "J_early_starts_worst": float(worst)}
 
     def _save_settings(self, workdir: Path) -> Path:
         """``pilco_settings.json``: the resolved preset (options over the task's defaults) and layout."""

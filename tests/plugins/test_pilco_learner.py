@@ -402,21 +402,27 @@ def test_stalled_rule_needs_a_still_J_and_a_confirmed_prediction():
     assert not stalled(float("nan"), 28.5, predicted=28.37, realised=28.26, tol=0.05)
 
 
-def test_fresh_start_keeps_the_lower_J_of_the_two_searches(monkeypatch):
+@pytest.fixture
+def searches(monkeypatch) -> list:
+    """Every policy search's result, in order, recorded as the learner runs them."""
+    import plugins.pilco.policy_search as search_module
+
+    recorded = []
+    original = search_module.optimise_policy
+
+    def recording(*args, **kwargs):
+        result = original(*args, **kwargs)
+        recorded.append(result)
+        return result
+
+    monkeypatch.setattr(search_module, "optimise_policy", recording)  # the learner imports it at each search
+    return recorded
+
+
+def test_fresh_start_keeps_the_lower_J_of_the_two_searches(searches):
     """With a tolerance that always holds, every trial after the first also searches from fresh
     parameters; the reported J is the lower of the two searches' (recorded independently here), the
     metrics say which was kept, and both searches' time is counted."""
-    import plugins.pilco.policy_search as search_module
-
-    searches = []
-
-    def recording(*args, **kwargs):
-        result = recording.__wrapped__(*args, **kwargs)
-        searches.append(result)
-        return result
-
-    recording.__wrapped__ = search_module.optimise_policy
-    monkeypatch.setattr(search_module, "optimise_policy", recording)  # the learner imports it at each search
     tracker = MemoryTracker()
     options = dict(TINY, fresh_start_tol="1e9", plots="false")
     result = run(RunConfig("pilco", "cartpole", seed=1, learner_options=options, task_options={"horizon": 10}, max_trials=3,
@@ -431,6 +437,33 @@ def test_fresh_start_keeps_the_lower_J_of_the_two_searches(monkeypatch):
         assert J_after[trial] == min(first.J_after, second.J_after)
         assert kept[trial] == float(second.J_after < first.J_after)
         assert dict(tracker.metrics["policy_evaluations"])[trial] == first.evaluations + second.evaluations
+
+
+def test_early_starts_keep_the_lowest_J_of_all_starts_in_the_first_trials_only(searches):
+    """early_starts=3 for the first 2 trials: those trials search three times (the controller handed over,
+    then two fresh ones), the third trial once; a trial's reported J is the lowest of its searches'
+    (recorded independently), early_start_kept names the search that gave it, J_early_starts_worst the
+    highest, and all searches' evaluations are counted."""
+    tracker = MemoryTracker()
+    options = dict(TINY, early_starts="3", early_start_trials="2", plots="false")
+    result = run(RunConfig("pilco", "cartpole", seed=4, learner_options=options, task_options={"horizon": 10}, max_trials=3,
+                           eval_episodes=1), tracker=tracker)
+    assert result.trials == 3 and len(searches) == 3 + 3 + 1
+    J_after, kept = dict(tracker.metrics["J_after"]), dict(tracker.metrics["early_start_kept"])
+    worst, evaluations = dict(tracker.metrics["J_early_starts_worst"]), dict(tracker.metrics["policy_evaluations"])
+    assert set(kept) == {1, 2} and set(worst) == {1, 2}
+    for trial, group in ((1, searches[0:3]), (2, searches[3:6])):
+        Js = [s.J_after for s in group]
+        assert J_after[trial] == min(Js) and kept[trial] == float(Js.index(min(Js)))
+        assert worst[trial] == max(Js)
+        assert evaluations[trial] == sum(s.evaluations for s in group)
+    assert J_after[3] == searches[6].J_after and evaluations[3] == searches[6].evaluations
+    assert len({s.J_after for s in searches[0:3]}) == 3  # the fresh starts are other controllers
+
+
+def test_early_starts_must_be_at_least_one():
+    with pytest.raises(OptionError, match="early_starts"):
+        Pilco(CartPole().spec, {"early_starts": "0"}, seed=0)
 
 
 def test_a_run_makes_the_same_decisions_with_either_kernel():
