@@ -119,6 +119,9 @@ class McPilco(Learner):
         Option("revert", bool, False, "with keep=best: a window whose end the fixed particles do not rate below the best so "
                "far sends the search back to the best, Adam restarted at lr * lr_decay, as one of lr_reductions; once they "
                "are used up, such a window ends the search (default off, the paper's search)"),
+        Option("lr_growth", float, 1.0, "with revert: a window end the fixed particles rate below the best so far multiplies "
+               "the learning rate by this, up to lr (a trust region: the rate halved by a backtrack grows again while the "
+               "search descends; 1 = off, the paper's search)", low=1.0),
         Option("step_scale", str, "none", "the units Adam steps the policy's parameters in (it moves each by about the "
                "learning rate whatever its gradient): none (each in its own, the paper's) or inputs (a weight on policy input "
                "j in units of 1/std_j, an RBF centre's coordinate j in units of std_j, std_j the spread of input j over every "
@@ -152,6 +155,10 @@ class McPilco(Learner):
         if o["revert"] and o["keep"] != "best":
             raise OptionError("mc-pilco: revert=true goes back to the best parameters of a search, which only keep=best "
                               "tracks: add --set learner.keep=best, or drop revert")
+        if o["lr_growth"] > 1.0 and not o["revert"]:
+            raise OptionError("mc-pilco: lr_growth raises the learning rate after a window that set a new best, which needs "
+                              "revert=true to back out of an overshoot: add --set learner.revert=true --set learner.keep=best, "
+                              "or drop lr_growth")
         if o["cost"] == "paper":
             from plugins.mc_pilco.costs import PAPER_COSTS
 
@@ -259,7 +266,8 @@ class McPilco(Learner):
         search = optimise_particles(objective, max_steps=o["max_steps"], lr=o["lr"], dropout=o["dropout"],
                                     dropout_step=o["dropout_step"], lr_decay=o["lr_decay"], window=o["window"],
                                     min_improvement=o["min_improvement"], seed=1000 * self.seed + trial, keep=o["keep"],
-                                    lr_reductions=o["lr_reductions"], revert=o["revert"], step_scales=scales, on_step=shown)
+                                    lr_reductions=o["lr_reductions"], revert=o["revert"], lr_growth=o["lr_growth"],
+                                    step_scales=scales, on_step=shown)
         return objective, search
 
     @classmethod
@@ -342,6 +350,7 @@ class McPilco(Learner):
                 "policy_opt_seconds": search.seconds, "policy_steps": float(search.steps),
                 "policy_skipped_steps": float(search.skipped), "dropout_reductions": float(search.reductions),
                 "lr_reductions": float(search.lr_reductions), "reverts": float(search.reverts),
+                "lr_growths": float(search.growths),
                 "final_dropout": search.final_dropout, "planning_horizon": float(self.horizon), "planning_basis": float(posterior.inputs.shape[0]),
                 "policy_parameters": float(sum(p.numel() for p in controller.parameters())),
             } | smoothing

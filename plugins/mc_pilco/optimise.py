@@ -17,7 +17,10 @@ gradient per window. With ``keep="best"`` and ``revert`` the search also backtra
 a window end that the fixed particles do not rate below the best so far sends the parameters back to the
 best, restarts Adam there at the learning rate times ``lr_decay`` and counts as one of the
 ``lr_reductions``; once they are used up, such a window ends the search. A search that runs uphill from
-its start then retries with smaller steps instead of climbing on.
+its start then retries with smaller steps instead of climbing on. With ``revert``, ``lr_growth`` > 1 makes that a
+trust region (not the paper's rule): a window end that the fixed particles rate below the best so far multiplies the
+learning rate by ``lr_growth``, up to ``lr``, so that a search that found a descending step size does not keep a rate
+halved by an earlier backtrack.
 
 Adam moves every parameter by about the learning rate per step whatever its gradient's size, so the
 parameters' units matter. ``step_scales`` (one tensor per parameter, its shape) sets them: Adam runs
@@ -50,8 +53,10 @@ class ParticleSearchResult:
         steps: Adam steps taken; skipped: steps whose estimate was not finite (no update).
         reductions: dropout reductions; lr_reductions: learning-rate reductions at dropout 0 (option
             ``lr_reductions``; with ``revert``, its backtracks are among them); reverts: backtracks to the best
-            parameters (``revert``); final_dropout, final_lr: their values at the end.
-        seconds: wall time; trace: window means of the estimates (with dropout), for plots.
+            parameters (``revert``); growths: learning-rate increases (``lr_growth``); final_dropout, final_lr: their
+            values at the end.
+        seconds: wall time; trace: window means of the estimates (with dropout), for plots; rates: the learning
+            rate Adam steps with after each window.
     """
 
     J_before: float
@@ -63,10 +68,12 @@ class ParticleSearchResult:
     reductions: int
     lr_reductions: int
     reverts: int
+    growths: int
     final_dropout: float
     final_lr: float
     seconds: float
     trace: list[float]
+    rates: list[float]
 
 
 def adam_step(opt: torch.optim.Adam, params: list[torch.Tensor], grads: list[torch.Tensor | None],
@@ -90,14 +97,16 @@ def adam_step(opt: torch.optim.Adam, params: list[torch.Tensor], grads: list[tor
 
 def optimise_particles(objective: ParticleObjective, *, max_steps: int, lr: float, dropout: float, dropout_step: float,
                        lr_decay: float, window: int, min_improvement: float, seed: int, keep: str = "last",
-                       lr_reductions: int = 0, revert: bool = False, step_scales: list[torch.Tensor] | None = None,
+                       lr_reductions: int = 0, revert: bool = False, lr_growth: float = 1.0,
+                       step_scales: list[torch.Tensor] | None = None,
                        on_step: Callable[[int, float, float], None] | None = None) -> ParticleSearchResult:
     """Minimise ``J_hat`` over the controller's parameters, left at the last step's values
     (``keep="last"``) or at those of the start or a window's end that the fixed particles rate lowest
     (``keep="best"``). ``step_scales``: Adam in the units ``theta / scale`` (see the module docstring;
     one tensor per :meth:`~plugins.mc_pilco.particles.ParticleObjective.parameters` entry, its shape).
     ``lr_reductions``: stalls at dropout 0 (and with ``revert``, windows that end above the best so far) that lower
-    the learning rate (by ``lr_decay``) before one ends the search; ``revert`` needs ``keep="best"``.
+    the learning rate (by ``lr_decay``) before one ends the search; ``revert`` needs ``keep="best"``; ``lr_growth``:
+    with ``revert``, the factor (up to ``lr``) a window end rated below the best so far raises the learning rate by.
 
     ``on_step(step, window mean of J_hat or nan before the first window, dropout)``, if given, is
     called after every Adam step (for progress)."""
@@ -116,6 +125,11 @@ def optimise_particles(objective: ParticleObjective, *, max_steps: int, lr: floa
     if int(lr_reductions) < 0:
         raise ValueError(f"lr_reductions must be >= 0, got {lr_reductions}")
     lr_reductions = int(lr_reductions)
+    if not lr_growth >= 1.0:
+        raise ValueError(f"lr_growth must be >= 1, got {lr_growth}")
+    if lr_growth > 1.0 and not revert:
+        raise ValueError("lr_growth > 1 raises the rate after a window that set a new best, which only revert=True "
+                         "backtracks from when it overshoots")
     if step_scales is not None and [tuple(q.shape) for q in step_scales] != [tuple(q.shape) for q in params]:
         raise ValueError(f"step_scales must have the parameters' shapes {[tuple(q.shape) for q in params]}, got "
                          f"{[tuple(q.shape) for q in step_scales]}")
@@ -139,7 +153,8 @@ def optimise_particles(objective: ParticleObjective, *, max_steps: int, lr: floa
     gen = torch.Generator().manual_seed(int(seed))
     estimates: list[float] = []
     trace: list[float] = []
-    skipped = reductions = late = reverts = steps = 0
+    rates: list[float] = []
+    skipped = reductions = late = reverts = growths = steps = 0
     p, rate = float(dropout), float(lr)
     for steps in range(1, int(max_steps) + 1):
         J, usable, grads = objective.value_and_grad(gen, p)  # on a GPU: a CUDA graph replayed (cuda_graph)
@@ -150,7 +165,8 @@ def optimise_particles(objective: ParticleObjective, *, max_steps: int, lr: floa
         estimates.append(J)
         if len(estimates) % window == 0:
             trace.append(float(np.mean(estimates[-window:])))
-            if keep == "best" and not candidate(steps) and revert:
+            improved = keep == "best" and candidate(steps)
+            if keep == "best" and not improved and revert:
                 if late >= lr_reductions:
                     break
                 restore(best[2])  # back to the best so far, Adam afresh with smaller steps
@@ -158,17 +174,22 @@ def optimise_particles(objective: ParticleObjective, *, max_steps: int, lr: floa
                 late += 1
                 reverts += 1
                 opt = torch.optim.Adam(params, lr=rate)
-            elif len(trace) >= 2 and trace[-2] - trace[-1] < min_improvement * abs(trace[-2]):
-                if p > 0.0:
-                    p, rate = max(0.0, p - dropout_step), rate * lr_decay
-                    reductions += 1
-                elif late < lr_reductions:
-                    rate *= lr_decay
-                    late += 1
-                else:
-                    break
+            else:
+                if improved and lr_growth > 1.0 and rate < lr:  # trust region: a new best widens the step again
+                    rate = min(float(lr), rate * lr_growth)
+                    growths += 1
+                if len(trace) >= 2 and trace[-2] - trace[-1] < min_improvement * abs(trace[-2]):
+                    if p > 0.0:
+                        p, rate = max(0.0, p - dropout_step), rate * lr_decay
+                        reductions += 1
+                    elif late < lr_reductions:
+                        rate *= lr_decay
+                        late += 1
+                    else:
+                        break
                 for group in opt.param_groups:
                     group["lr"] = rate
+            rates.append(rate)
         if on_step is not None:
             on_step(steps, trace[-1] if trace else math.nan, p)
     J_last = checked()
@@ -177,5 +198,5 @@ def optimise_particles(objective: ParticleObjective, *, max_steps: int, lr: floa
         J_after, kept_step = best[0], best[1]
         restore(best[2])
     return ParticleSearchResult(J_before=J_before, J_after=J_after, J_last=J_last, kept_step=kept_step, steps=steps,
-                                skipped=skipped, reductions=reductions, lr_reductions=late, reverts=reverts, final_dropout=p, final_lr=rate,
-                                seconds=time.perf_counter() - start, trace=trace)
+                                skipped=skipped, reductions=reductions, lr_reductions=late, reverts=reverts, growths=growths,
+                                final_dropout=p, final_lr=rate, seconds=time.perf_counter() - start, trace=trace, rates=rates)

@@ -228,6 +228,52 @@ def test_revert_goes_back_to_the_best_parameters_with_smaller_steps() -> None:
         McPilco(load_task("cartpole")().spec, {"revert": True}, 0)
 
 
+def test_lr_growth_raises_the_rate_after_each_new_best_up_to_lr_and_is_off_by_default() -> None:
+    """revert with lr_growth=2 (a trust region): the rate after each window is the one before it halved by a
+    backtrack, doubled (capped at lr) after a window end the fixed particles rated below the best so far, and never
+    above lr; with lr_growth=1 the search is the one without the option, step for step. On this problem the rate
+    grows again after the first backtrack."""
+    kwargs = dict(max_steps=400, lr=1.0, dropout=0.0, dropout_step=0.125, lr_decay=0.5, window=10, min_improvement=0.0,
+                  seed=0, keep="best", revert=True, lr_reductions=6)
+    same = optimise_particles(_particles(_objective("rbf-two-controls"), 64, 8), lr_growth=1.0, **kwargs)
+    plain = optimise_particles(_particles(_objective("rbf-two-controls"), 64, 8), **kwargs)
+    assert (same.trace, same.rates, same.J_after, same.kept_step) == (plain.trace, plain.rates, plain.J_after, plain.kept_step)
+    assert plain.growths == 0
+
+    obj = _objective("rbf-two-controls")
+    particles = _particles(obj, 64, 8)
+    checks = []  # the fixed particles' value at each window end, in order (the first: the start)
+    real = particles.value
+
+    def value(gen):
+        out = real(gen)
+        checks.append(float(out))
+        return out
+
+    particles.value = value
+    grown = optimise_particles(particles, lr_growth=2.0, **kwargs)
+    assert grown.growths >= 1 and grown.reverts >= 1
+    best, rate = checks[0], kwargs["lr"]
+    for i, (check, after) in enumerate(zip(checks[1:], grown.rates)):
+        if check < best:
+            best, rate = check, min(kwargs["lr"], rate * 2.0)
+            if i >= 1 and grown.trace[i] > grown.trace[i - 1]:  # a window mean that rose is a stall: halved as well
+                rate *= 0.5
+        else:
+            rate *= 0.5  # a backtrack
+        assert after == pytest.approx(rate) and after <= kwargs["lr"]
+    assert grown.final_lr == pytest.approx(rate)
+    with pytest.raises(ValueError, match="only revert=True"):
+        optimise_particles(_particles(_objective("rbf-two-controls"), 64, 8), **{**kwargs, "revert": False}, lr_growth=2.0)
+    with pytest.raises(ValueError, match="lr_growth must be >= 1"):
+        optimise_particles(_particles(_objective("rbf-two-controls"), 64, 8), **kwargs, lr_growth=0.5)
+    from harness.discovery import load_task
+    from harness.errors import OptionError
+
+    with pytest.raises(OptionError, match="needs revert=true"):
+        McPilco(load_task("cartpole")().spec, {"lr_growth": 2.0}, 0)
+
+
 @pytest.mark.parametrize("lr, kept", [(0.2, "a window's end"), (0.5, "the start")])
 def test_keep_best_hands_over_the_parameters_the_fixed_particles_rate_lowest(lr, kept) -> None:
     """keep="best" takes the same Adam steps as keep="last" (its checks draw from their own generator)
