@@ -21,7 +21,12 @@ kernel; :class:`plugins.pilco.learner.Pilco` built from the run's params) from s
 * **fresh 1..F**: from fresh initial controllers (the learner's own initialisation, generator
   seeds 1..F), the preset's budget each (what ``fresh_start_tol`` would add), or ``--budgets B`` of
   them in a row (each search continuing from the last: where a fresh start converges), with J after
-  each.
+  each;
+* **perturbed 1..P** (``--perturbed P --perturb-scale S``): from the run's trial-``K`` policy with every
+  parameter tensor moved by ``S`` times its own spread (standard deviation over its entries, or its
+  magnitude for a single number) times standard normal noise (generator seeds 1..P), the preset's
+  budget each: does a search that keeps most of what the run learned, but not its exact optimum,
+  find a lower J (a basin-hopping restart)?
 
 ``--set KEY=VALUE`` replays every search with a learner option changed, e.g. ``planning_horizon=100``
 (J over 100 predicted steps; the real test episodes keep the task's horizon) or ``cost_width=1.0``
@@ -84,10 +89,23 @@ def learner_for(run: SavedPilcoRun, changes: dict[str, str] | None = None):
     return new_learner(prepare(config))
 
 
+def perturbed_copy(controller, scale: float, seed: int):
+    """A copy of ``controller`` moved as the learner's restarts move it (:func:`plugins.pilco.policy.perturbed_state`,
+    generator ``seed``)."""
+    import copy
+
+    from plugins.pilco.policy import perturbed_state
+
+    moved = copy.deepcopy(controller)
+    moved.load_state_dict(perturbed_state(controller, scale, torch.Generator().manual_seed(seed)))
+    return moved
+
+
 def check(run: SavedPilcoRun, trial: int, fresh: int, evaluator: Evaluator, log=print, budgets: int = 1,
-          changes: dict[str, str] | None = None) -> tuple[list[Row], int, float]:
+          changes: dict[str, str] | None = None, perturbed: int = 0, perturb_scale: float = 0.1) -> tuple[list[Row], int, float]:
     """The rows of the table for ``trial`` of ``run`` (see the module docstring; fresh starts get ``budgets``
-    searches in a row; learner options in ``changes`` replaced; J over the run's own planning horizon at that
+    searches in a row; ``perturbed`` starts from the trial's policy moved by ``perturb_scale`` (:func:`perturbed_copy`);
+    learner options in ``changes`` replaced; J over the run's own planning horizon at that
     trial unless ``changes`` sets ``planning_horizon``),
     the planning horizon used and the run's logged ``J_after`` of that trial."""
     if trial not in run.model_trials() or trial not in run.policy_trials():
@@ -125,6 +143,9 @@ def check(run: SavedPilcoRun, trial: int, fresh: int, evaluator: Evaluator, log=
     for s in range(1, fresh + 1):
         rows.append(searched(f"fresh {s} (initial controller, generator seed {s}{f', {budgets} budgets' if budgets > 1 else ''})",
                              learner.new_controller(torch.Generator().manual_seed(s)), budgets))
+    for s in range(1, perturbed + 1):
+        rows.append(searched(f"perturbed {s} (policy {trial}, scale {perturb_scale:g}, generator seed {s})",
+                             perturbed_copy(run.policy(trial).controller, perturb_scale, s)))
     return rows, horizon, logged
 
 
@@ -146,6 +167,9 @@ def main(argv: list[str] | None = None) -> None:
     parser.add_argument("--trial", type=int, default=None, help="default: the run's last trial with a model")
     parser.add_argument("--fresh", type=int, default=3, help="searches from fresh initial controllers")
     parser.add_argument("--budgets", type=int, default=1, help="preset budgets in a row for each fresh start")
+    parser.add_argument("--perturbed", type=int, default=0, help="searches from the trial's policy with perturbed parameters")
+    parser.add_argument("--perturb-scale", type=float, default=0.1, help="the perturbation, in units of each parameter "
+                        "tensor's own spread")
     parser.add_argument("--set", dest="changes", action="append", default=[], metavar="KEY=VALUE",
                         help="a learner option changed for every search, e.g. planning_horizon=100 or cost_width=1.0")
     parser.add_argument("--planning-horizon", type=int, default=None, metavar="H", help="the same as --set planning_horizon=H")
@@ -160,7 +184,8 @@ def main(argv: list[str] | None = None) -> None:
         trial = args.trial if args.trial is not None else max(run.model_trials())
         evaluator = Evaluator(run.task, n_episodes=args.episodes, seed=args.seed)
         try:
-            rows, horizon, logged = check(run, trial, args.fresh, evaluator, budgets=args.budgets, changes=changes)
+            rows, horizon, logged = check(run, trial, args.fresh, evaluator, budgets=args.budgets, changes=changes,
+                                          perturbed=args.perturbed, perturb_scale=args.perturb_scale)
         finally:
             evaluator.close()
         params = run.params

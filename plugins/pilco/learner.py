@@ -28,7 +28,7 @@ import math
 import shutil
 import tempfile
 import warnings
-from collections.abc import Iterator
+from collections.abc import Callable, Iterator
 from dataclasses import asdict, replace
 from pathlib import Path
 from typing import TYPE_CHECKING, Any, ClassVar
@@ -152,6 +152,13 @@ class Pilco(Learner):
                "last trial's realised cost was within this fraction of its prediction (stuck in an optimum the model "
                "is sure of), also search from fresh initial parameters and keep the lower J (default: the task preset's, "
                "dm_control cart-pole 0.05, else off; 0 = off)", low=0.0),
+        Option("restart_tol", float, None, "the fresh-start rule's test (J moved less than this fraction since the last "
+               "trial, the last trial's realised cost within this fraction of its prediction) for restarts near the policy: "
+               "when it holds, also search from `restarts` copies of the policy with every parameter tensor moved by "
+               "restart_scale times its spread, and keep the lowest J (a basin-hopping restart: fresh starts lose what the "
+               "run learned; default off)", low=0.0),
+        Option("restarts", int, 2, "searches from perturbed copies of the policy when restart_tol's test holds", low=1),
+        Option("restart_scale", float, 0.1, "restart_tol's perturbation, in units of each parameter tensor's spread", low=0.0),
         Option("early_starts", int, 1, "policy searches in each of the first early_start_trials trials: from the "
                "controller handed over and from K-1 fresh initial controllers (seeded by run seed, trial and start), "
                "the lowest J kept (1 = off): the first policies decide which data the model sees", low=1),
@@ -335,7 +342,11 @@ class Pilco(Learner):
                 fresh = None
                 if self.fresh_start_tol is not None and search is not None and stalled(
                         search.J_after, last_J, _predicted_sum(predicted), _realised_sum(interaction, predicted), self.fresh_start_tol):
-                    search, fresh = self._fresh_start(objective, controller, search, trial, kernel, threads)
+                    search, fresh = self._fresh_start(objective, search, trial, kernel, threads)
+                restarted = None
+                if o["restart_tol"] and search is not None and stalled(
+                        search.J_after, last_J, _predicted_sum(predicted), _realised_sum(interaction, predicted), o["restart_tol"]):
+                    search, restarted = self._restarts(objective, search, trial, kernel, threads)
                 try:
                     predicted = objective.predicted_costs()
                 except (NumericalError, torch.linalg.LinAlgError):  # the kept policy's prediction degenerated: no plot, say so
@@ -345,6 +356,8 @@ class Pilco(Learner):
                 sampled = sampled_costs(objective, o["sample_particles"], seed=1000 * self.seed + trial) if o["sample_particles"] else None
                 self.metrics = self._trial_metrics(fit, search, failed, predicted, objective.num_params) | smoothing
                 self.metrics.update(early)
+                if o["restart_tol"]:
+                    self.metrics.update(restarted or {"restarted": 0.0})
                 if self.fresh_start_tol is not None:
                     self.metrics.update(fresh_start=float(fresh is not None), fresh_start_kept=float(bool(fresh and fresh["kept"])),
                                         J_fresh_start=fresh["J"] if fresh else math.nan)
@@ -405,15 +418,13 @@ class Pilco(Learner):
         with torch_threads(1 if kernel in COMPILED_KERNELS else threads):
             return optimise_policy(objective, self.preset.policy_max_iterations, budget, on_evaluation=shown)
 
-    def _search_from_fresh(self, objective: PolicyObjective, controller: SquashedController, search, seed: int, kernel: str,
-                           threads: int, what: str) -> tuple[Any, float]:
-        """A further policy search from a fresh initial controller (drawn with ``seed``); the lower J of it and
-        ``search`` (the one that left the controller where it is) is left in the controller. Returns the search to
-        report (the kept one, with both searches' time and evaluations) and the fresh search's J (NaN if it failed)."""
-        import torch
-
+    def _search_from(self, objective: PolicyObjective, controller: SquashedController, search, start: dict, kernel: str,
+                     threads: int, what: str) -> tuple[Any, float]:
+        """A further policy search from the controller state ``start``; the lower J of it and ``search`` (the one that
+        left the controller where it is) is left in the controller. Returns the search to report (the kept one, with
+        both searches' time and evaluations) and the further search's J (NaN if it failed)."""
         kept_theta = objective.get_flat()
-        controller.load_state_dict(self.new_controller(torch.Generator().manual_seed(seed)).state_dict())  # onto its device
+        controller.load_state_dict(start)  # copied onto the controller's device
         try:
             second = self.search_policy(objective, kernel, threads, what)
         except NumericalError:
@@ -428,32 +439,62 @@ class Pilco(Learner):
                            failed_evaluations=search.failed_evaluations + second.failed_evaluations)
         return combined, float(second.J_after)
 
-    def _fresh_start(self, objective: PolicyObjective, controller: SquashedController, search, trial: int, kernel: str,
-                     threads: int) -> tuple[Any, dict[str, Any]]:
+    def _best_of(self, objective: PolicyObjective, search, starts: list[dict], kernel: str, threads: int,
+                 what: str) -> tuple[Any, int, list[float]]:
+        """Further policy searches from each controller state in ``starts`` (:meth:`_search_from`), the lowest J of all,
+        ``search``'s included, left in the controller. Returns the search to report (the kept one, every search's time
+        and evaluations counted), which was kept (0: ``search``; k: the k-th start) and each start's J (NaN: failed)."""
+        kept, Js = 0, []
+        for k, start in enumerate(starts, start=1):
+            before = search.J_after
+            label = what if len(starts) == 1 else f"{what} {k}/{len(starts)}"
+            search, J = self._search_from(objective, objective.controller, search, start, kernel, threads, label)
+            kept = k if search.J_after < before else kept
+            Js.append(J)
+        return search, kept, Js
+
+    def _fresh_states(self, count: int, seed: Callable[[int], int]) -> list[dict]:
+        """``count`` fresh initial controllers' states, the k-th (from 1) drawn with generator seed ``seed(k)``."""
+        import torch
+
+        return [self.new_controller(torch.Generator().manual_seed(seed(k))).state_dict() for k in range(1, count + 1)]
+
+    def _fresh_start(self, objective: PolicyObjective, search, trial: int, kernel: str, threads: int) -> tuple[Any, dict[str, Any]]:
         """The fresh-start rule's second policy search from fresh initial parameters (seeded by run seed and
         trial); the lower J of the two is left in the controller. Returns the search to report (the kept one, with
         both searches' time and evaluations) and ``{"J": fresh J, "kept": bool}``."""
-        combined, J = self._search_from_fresh(objective, controller, search, 1_000_003 * (self.seed + 1) + trial, kernel,
-                                              threads, "policy search from fresh parameters")
-        return combined, {"J": J, "kept": combined.J_after < search.J_after}
+        start = self._fresh_states(1, lambda _: 1_000_003 * (self.seed + 1) + trial)
+        search, kept, (J,) = self._best_of(objective, search, start, kernel, threads, "policy search from fresh parameters")
+        return search, {"J": J, "kept": kept == 1}
+
+    def _restarts(self, objective: PolicyObjective, search, trial: int, kernel: str, threads: int) -> tuple[Any, dict[str, float]]:
+        """``restart_tol``: ``restarts`` more policy searches, each from the policy ``search`` handed over with every
+        parameter tensor perturbed (:func:`~plugins.pilco.policy.perturbed_state`, ``restart_scale``; seeded by run
+        seed, trial and restart), the lowest J of all left in the controller. Returns the search to report and the
+        metrics ``restarted`` (1), ``restart_kept`` (0: the run's own search; k: the k-th restart) and
+        ``J_restart_best`` (the lowest J a restart ended at)."""
+        import torch
+
+        from plugins.pilco.policy import perturbed_state
+
+        o = self.options
+        starts = [perturbed_state(objective.controller, o["restart_scale"],
+                                  torch.Generator().manual_seed(3_000_017 * (self.seed + 1) + 1009 * trial + k))
+                  for k in range(1, o["restarts"] + 1)]  # all near the policy the trial's search handed over
+        search, kept, Js = self._best_of(objective, search, starts, kernel, threads, "policy search from restart")
+        finite = [J for J in Js if math.isfinite(J)]
+        return search, {"restarted": 1.0, "restart_kept": float(kept), "J_restart_best": min(finite) if finite else math.nan}
 
     def _more_starts(self, objective: PolicyObjective, search, trial: int, kernel: str, threads: int,
                      extra: int) -> tuple[Any, dict[str, float]]:
         """``early_starts``: ``extra`` more policy searches from fresh initial controllers (seeded by run seed, trial
         and start, apart from the fresh-start rule's seeds), the lowest J of all left in the controller. Returns the
-        search to report (the kept one, with all searches' time and evaluations) and the metrics ``early_start_kept``
-        (0: the search from the controller handed over, k: the k-th fresh start) and ``J_early_starts_worst`` (the
-        highest J any start ended at)."""
-        kept, worst = 0, search.J_after
-        for k in range(1, extra + 1):
-            seed = 2_000_003 * (self.seed + 1) + 1009 * trial + k
-            before = search.J_after
-            search, J = self._search_from_fresh(objective, objective.controller, search, seed, kernel, threads,
-                                                f"policy search from start {k + 1}/{extra + 1}")
-            if search.J_after < before:
-                kept = k
-            if math.isfinite(J):
-                worst = max(worst, J)
+        search to report and the metrics ``early_start_kept`` (0: the search from the controller handed over, k: the
+        k-th fresh start) and ``J_early_starts_worst`` (the highest J any start ended at)."""
+        first = search.J_after
+        starts = self._fresh_states(extra, lambda k: 2_000_003 * (self.seed + 1) + 1009 * trial + k)
+        search, kept, Js = self._best_of(objective, search, starts, kernel, threads, "policy search from start")
+        worst = max([first] + [J for J in Js if math.isfinite(J)])
         return search, {"early_start_kept": float(kept), "J_early_starts_worst": float(worst)}
 
     def _save_settings(self, workdir: Path) -> Path:

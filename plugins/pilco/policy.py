@@ -169,6 +169,19 @@ def initial_controller(spec: TaskSpec, preset: Preset, layout: StateLayout, squa
     return SquashedController(base, spec.action_high, squash)
 
 
+def perturbed_state(controller: torch.nn.Module, scale: float, generator: torch.Generator) -> dict[str, torch.Tensor]:
+    """``controller``'s parameters with every tensor moved by ``scale`` times its own spread (the standard deviation
+    over its entries; its magnitude where it has one entry) times standard normal noise drawn from ``generator`` (on
+    the host, then moved to the tensor's device): a restart near a policy, not from scratch. Returns a state dict
+    (the buffers unchanged); ``controller`` is left as it is."""
+    state = {k: v.detach().clone() for k, v in controller.state_dict().items()}
+    for name, q in controller.named_parameters():
+        q = q.detach()
+        spread = q.abs().max() if q.numel() == 1 else q.std()
+        state[name] = q + scale * spread * torch.randn(q.shape, generator=generator, dtype=q.dtype).to(q.device)
+    return state
+
+
 def spread_centres(layout: StateLayout, num_centres: int, spread: float, generator: torch.Generator) -> torch.Tensor:
     """``(num_centres, p)`` RBF centres spread over the state space (MC-PILCO's initialisation, Amadio et
     al. 2022): the policy inputs ``a(x)[policy_inputs]`` of states ``x`` uniform in ``[-spread, spread]``

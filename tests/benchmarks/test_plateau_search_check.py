@@ -77,3 +77,28 @@ def test_a_shorter_planning_horizon_replaces_the_runs_own(stored):
     # the same policy's expected cost summed over the first 6 of the run's 12 steps: less than the run's J
     assert 0 < rows[0].J_after < logged
     assert rows[2].J_before == pytest.approx(rows[0].J_after, rel=1e-9) and rows[2].J_after <= rows[2].J_before
+
+
+def test_perturbed_starts_move_every_parameter_tensor_by_its_own_spread_and_search_from_there(stored):
+    """perturbed_copy moves each parameter tensor by scale x its spread x N(0, 1) (checked against the noise drawn
+    again here) and leaves the original alone; check() adds one search per perturbed start, from there."""
+    import torch
+
+    from benchmarks.plateau_search_check import perturbed_copy
+
+    uri, run_id = stored
+    with SavedPilcoRun(run_id, uri) as saved:
+        controller = saved.policy(3).controller
+    before = [q.detach().clone() for q in controller.parameters()]
+    moved = perturbed_copy(controller, 0.3, seed=5)
+    gen = torch.Generator().manual_seed(5)
+    for q0, q, m in zip(before, controller.parameters(), moved.parameters()):
+        assert torch.equal(q0, q.detach())  # the original is untouched
+        spread = q0.abs().max() if q0.numel() == 1 else q0.std()
+        expected = q0 + 0.3 * spread * torch.randn(q0.shape, generator=gen, dtype=q0.dtype)
+        assert torch.allclose(m.detach(), expected, rtol=0, atol=1e-15)
+    assert any(not torch.equal(q0, m.detach()) for q0, m in zip(before, moved.parameters()))
+    (rows, _, _), _ = replay(stored, 2, fresh=0, perturbed=2, perturb_scale=0.3)
+    perturbed = [r for r in rows if r.start.startswith("perturbed")]
+    assert len(perturbed) == 2 and perturbed[0].J_before != perturbed[1].J_before
+    assert all(r.J_after <= r.J_before for r in perturbed)  # L-BFGS-B never hands back worse than its start

@@ -461,6 +461,52 @@ def test_early_starts_keep_the_lowest_J_of_all_starts_in_the_first_trials_only(s
     assert len({s.J_after for s in searches[0:3]}) == 3  # the fresh starts are other controllers
 
 
+def test_restarts_search_near_the_handed_policy_when_stalled_and_keep_the_lowest_J(searches):
+    """With a restart tolerance that always holds, every trial after the first also searches from two perturbed
+    copies of the policy its search handed over; the trial's J is the lowest of its three searches' (recorded
+    independently), restart_kept names the one, J_restart_best is the restarts' lowest, and all evaluations count.
+    The restarts start near the handed policy, not from scratch: their starting J is the handed policy's within
+    the perturbation's reach, not a fresh controller's."""
+    tracker = MemoryTracker()
+    options = dict(TINY, restart_tol="1e9", restarts="2", plots="false")
+    result = run(RunConfig("pilco", "cartpole", seed=2, learner_options=options, task_options={"horizon": 10}, max_trials=3,
+                           eval_episodes=1), tracker=tracker)
+    assert result.trials == 3 and len(searches) == 1 + 3 + 3
+    restarted, kept = dict(tracker.metrics["restarted"]), dict(tracker.metrics["restart_kept"])
+    J_after, best = dict(tracker.metrics["J_after"]), dict(tracker.metrics["J_restart_best"])
+    evaluations = dict(tracker.metrics["policy_evaluations"])
+    assert restarted == {1: 0.0, 2: 1.0, 3: 1.0} and set(kept) == {2, 3}
+    for trial, group in ((2, searches[1:4]), (3, searches[4:7])):
+        Js = [s.J_after for s in group]
+        assert J_after[trial] == min(Js) and kept[trial] == float(Js.index(min(Js)))
+        assert best[trial] == min(Js[1:])
+        assert evaluations[trial] == sum(s.evaluations for s in group)
+        assert all(s.J_before != group[0].J_after for s in group[1:])  # perturbed, not the handed policy itself
+
+
+def test_perturbed_state_moves_each_parameter_tensor_by_its_own_spread():
+    """perturbed_state: each parameter tensor plus scale x its spread (std, or magnitude for one entry) x N(0, 1) from
+    the generator, in the controller's parameter order; scale 0 gives the parameters back; the controller is left
+    as it was."""
+    from plugins.pilco.policy import perturbed_state
+
+    learner = Pilco(CartPole().spec, {"num_centres": "5"}, seed=0)
+    controller = learner.new_controller(torch.Generator().manual_seed(0))
+    before = {k: v.clone() for k, v in controller.state_dict().items()}
+    moved = perturbed_state(controller, 0.1, torch.Generator().manual_seed(3))
+    gen = torch.Generator().manual_seed(3)
+    names = [name for name, _ in controller.named_parameters()]
+    assert names and set(names) <= set(moved)
+    for name, q in controller.named_parameters():
+        spread = q.detach().abs().max() if q.numel() == 1 else q.detach().std()
+        expected = q.detach() + 0.1 * spread * torch.randn(q.shape, generator=gen, dtype=q.dtype)
+        assert torch.allclose(moved[name], expected, rtol=0, atol=1e-15) and not torch.equal(moved[name], q.detach())
+    for k, v in controller.state_dict().items():
+        assert torch.equal(v, before[k])
+    same = perturbed_state(controller, 0.0, torch.Generator().manual_seed(3))
+    assert all(torch.equal(same[k], before[k]) for k in before)
+
+
 def test_early_starts_must_be_at_least_one():
     with pytest.raises(OptionError, match="early_starts"):
         Pilco(CartPole().spec, {"early_starts": "0"}, seed=0)
