@@ -339,13 +339,16 @@ class Pilco(Learner):
                 early = {}
                 if o["early_starts"] > 1 and trial <= o["early_start_trials"] and search is not None:
                     search, early = self._more_starts(objective, search, trial, kernel, threads, o["early_starts"] - 1)
+                planned, realised_cost = _predicted_sum(predicted), _realised_sum(interaction, predicted)
+
+                def stuck(tol: float | None) -> bool:  # the fresh-start rule's test, on the search as it stands now
+                    return search is not None and stalled(search.J_after, last_J, planned, realised_cost, tol)
+
                 fresh = None
-                if self.fresh_start_tol is not None and search is not None and stalled(
-                        search.J_after, last_J, _predicted_sum(predicted), _realised_sum(interaction, predicted), self.fresh_start_tol):
+                if self.fresh_start_tol is not None and stuck(self.fresh_start_tol):
                     search, fresh = self._fresh_start(objective, search, trial, kernel, threads)
                 restarted = None
-                if o["restart_tol"] and search is not None and stalled(
-                        search.J_after, last_J, _predicted_sum(predicted), _realised_sum(interaction, predicted), o["restart_tol"]):
+                if o["restart_tol"] and stuck(o["restart_tol"]):
                     search, restarted = self._restarts(objective, search, trial, kernel, threads)
                 try:
                     predicted = objective.predicted_costs()
@@ -418,13 +421,13 @@ class Pilco(Learner):
         with torch_threads(1 if kernel in COMPILED_KERNELS else threads):
             return optimise_policy(objective, self.preset.policy_max_iterations, budget, on_evaluation=shown)
 
-    def _search_from(self, objective: PolicyObjective, controller: SquashedController, search, start: dict, kernel: str,
-                     threads: int, what: str) -> tuple[Any, float]:
+    def _search_from(self, objective: PolicyObjective, search, start: dict, kernel: str, threads: int,
+                     what: str) -> tuple[Any, float]:
         """A further policy search from the controller state ``start``; the lower J of it and ``search`` (the one that
-        left the controller where it is) is left in the controller. Returns the search to report (the kept one, with
-        both searches' time and evaluations) and the further search's J (NaN if it failed)."""
+        left the objective's controller where it is) is left in the controller. Returns the search to report (the kept
+        one, with both searches' time and evaluations) and the further search's J (NaN if it failed)."""
         kept_theta = objective.get_flat()
-        controller.load_state_dict(start)  # copied onto the controller's device
+        objective.controller.load_state_dict(start)  # copied onto the controller's device
         try:
             second = self.search_policy(objective, kernel, threads, what)
         except NumericalError:
@@ -448,7 +451,7 @@ class Pilco(Learner):
         for k, start in enumerate(starts, start=1):
             before = search.J_after
             label = what if len(starts) == 1 else f"{what} {k}/{len(starts)}"
-            search, J = self._search_from(objective, objective.controller, search, start, kernel, threads, label)
+            search, J = self._search_from(objective, search, start, kernel, threads, label)
             kept = k if search.J_after < before else kept
             Js.append(J)
         return search, kept, Js
