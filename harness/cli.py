@@ -331,6 +331,12 @@ def sweep_command(
     if address and resolve_tracking_uri(tracking_uri).startswith("sqlite:"):
         click.echo(f"note: Ray workers on other machines must reach {resolve_tracking_uri(tracking_uri)} (a shared filesystem); "
                    "otherwise run `mlflow server` and pass --tracking-uri http://HOST:5000", err=True)
+    from harness.interrupts import STOP_AFTER_TRIAL, catch_stop_requests_early
+
+    catch_stop_requests_early()  # a kill -USR1 before the driver listens (opening the store) is kept, not fatal
+    if STOP_AFTER_TRIAL is not None:  # also with -q: a sweep in the background is stopped by its pid
+        click.echo(f"to stop (resumable): kill -{STOP_AFTER_TRIAL.name[3:]} {os.getpid()} (no new cells; the running ones "
+                   f"stop after their trial in progress), kill {os.getpid()} at once", err=True)
     progress = SilentSweepProgress() if quiet else RichSweepProgress()
     result = run_sweep(spec, tracking_uri=tracking_uri, executor=executor, workers=workers, address=address, progress=progress)
     if quiet:

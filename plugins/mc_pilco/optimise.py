@@ -175,18 +175,19 @@ def optimise_particles(objective: ParticleObjective, *, max_steps: int, lr: floa
                 reverts += 1
                 opt = torch.optim.Adam(params, lr=rate)
             else:
+                stalled = len(trace) >= 2 and trace[-2] - trace[-1] < min_improvement * abs(trace[-2])
+                if stalled and p <= 0.0 and late >= lr_reductions:
+                    break  # the search ends here: no growth of a rate nobody uses
                 if improved and lr_growth > 1.0 and rate < lr:  # trust region: a new best widens the step again
                     rate = min(float(lr), rate * lr_growth)
                     growths += 1
-                if len(trace) >= 2 and trace[-2] - trace[-1] < min_improvement * abs(trace[-2]):
+                if stalled:
                     if p > 0.0:
                         p, rate = max(0.0, p - dropout_step), rate * lr_decay
                         reductions += 1
-                    elif late < lr_reductions:
+                    else:
                         rate *= lr_decay
                         late += 1
-                    else:
-                        break
                 for group in opt.param_groups:
                     group["lr"] = rate
             rates.append(rate)

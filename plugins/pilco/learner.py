@@ -156,7 +156,7 @@ class Pilco(Learner):
                "trial, the last trial's realised cost within this fraction of its prediction) for restarts near the policy: "
                "when it holds, also search from `restarts` copies of the policy with every parameter tensor moved by "
                "restart_scale times its spread, and keep the lowest J (a basin-hopping restart: fresh starts lose what the "
-               "run learned; default off)", low=0.0),
+               "run learned; default: the task preset's, else off; 0 = off)", low=0.0),
         Option("restarts", int, 2, "searches from perturbed copies of the policy when restart_tol's test holds", low=1),
         Option("restart_scale", float, 0.1, "restart_tol's perturbation, in units of each parameter tensor's spread", low=0.0),
         Option("early_starts", int, 1, "policy searches in each of the first early_start_trials trials: from the "
@@ -201,6 +201,8 @@ class Pilco(Learner):
         self.num_pseudo = o["num_pseudo"] or self.preset.sparse_threshold
         tol = o["fresh_start_tol"] if o["fresh_start_tol"] is not None else preset.fresh_start_tol
         self.fresh_start_tol = tol or None  # 0: off
+        tol = o["restart_tol"] if o["restart_tol"] is not None else preset.restart_tol
+        self.restart_tol = tol or None  # 0: off
         # a bool option cannot say "unset": the preset's value holds unless the option was given
         noise = o["plan_with_noise"] if "plan_with_noise" in (options or {}) else preset.plan_with_noise
         self.policy_noise_std = spec.measurement_noise_std if noise else None
@@ -234,6 +236,7 @@ class Pilco(Learner):
         used.update(planning_horizon=self.horizon, cost_width=self.cost_width or self.spec.cost.width, num_pseudo=self.num_pseudo,
                     gp_hyper_subset=self.options["gp_hyper_subset"] or self.preset.sparse_threshold,
                     threads=self.options["threads"] or run_threads(), kernel=self.kernel, fresh_start_tol=self.fresh_start_tol,
+                    restart_tol=self.restart_tol,
                     grow_horizon_below=self.schedule.grow_below, grow_horizon_on=self.schedule.rule,
                     plan_with_noise=self.policy_noise_std is not None)
         from plugins.pilco.moments import COMPILED_KERNELS
@@ -348,7 +351,7 @@ class Pilco(Learner):
                 if self.fresh_start_tol is not None and stuck(self.fresh_start_tol):
                     search, fresh = self._fresh_start(objective, search, trial, kernel, threads)
                 restarted = None
-                if o["restart_tol"] and stuck(o["restart_tol"]):
+                if self.restart_tol is not None and stuck(self.restart_tol):
                     search, restarted = self._restarts(objective, search, trial, kernel, threads)
                 try:
                     predicted = objective.predicted_costs()
@@ -359,7 +362,7 @@ class Pilco(Learner):
                 sampled = sampled_costs(objective, o["sample_particles"], seed=1000 * self.seed + trial) if o["sample_particles"] else None
                 self.metrics = self._trial_metrics(fit, search, failed, predicted, objective.num_params) | smoothing
                 self.metrics.update(early)
-                if o["restart_tol"]:
+                if self.restart_tol is not None:
                     self.metrics.update(restarted or {"restarted": 0.0})
                 if self.fresh_start_tol is not None:
                     self.metrics.update(fresh_start=float(fresh is not None), fresh_start_kept=float(bool(fresh and fresh["kept"])),

@@ -19,7 +19,7 @@ class Preset:
     (the raw angles are always replaced by their sin/cos). ``planning_horizon`` (steps; ``None``:
     the task's horizon) and ``cost_width`` (metres; ``None``: the task's) set what J is computed
     over; the task's own cost and horizon still score every evaluation. ``fresh_start_tol``: the
-    default of the learner option of that name (``None``: off).
+    default of the learner option of that name (``None``: off); ``restart_tol`` likewise.
 
     ``horizon_schedule`` (``pilco`` only; ``None``: off): ``(first horizon in steps, threshold)``, the
     defaults of its options ``planning_horizon`` and ``grow_horizon_below`` (start planning over the
@@ -42,6 +42,7 @@ class Preset:
     planning_horizon: int | None = None
     cost_width: float | None = None
     fresh_start_tol: float | None = None
+    restart_tol: float | None = None
     horizon_schedule: tuple[int, float] | None = None
     grow_horizon_on: str = "prediction"
     plan_with_noise: bool = False

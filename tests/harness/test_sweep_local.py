@@ -117,3 +117,21 @@ def test_sigusr1_to_the_driver_drains_the_sweep(plugins, mlflow_uri, tmp_path):
         assert "Not resumable (no checkpoint)" in run.tags["mlflow.note.content"]
     (parent,) = sweep_runs(mlflow_uri, spec, "sweep")
     assert parent.status == "KILLED" and parent.tags["harness.cells_stopped"] == "2"
+
+
+def test_the_sweep_prints_its_pid_and_a_stop_request_at_once_drains_it(plugins, mlflow_uri, tmp_path):
+    """A sweep says how to stop it by its pid (also with --quiet: one run in the background is stopped that way), and
+    `kill -USR1` sent as soon as that line appears, before the driver has opened the store, is a stop request, not the
+    signal's default action: exit 130, nothing failed, the cells not started (or stopped after a trial)."""
+    import signal
+
+    args = ["sweep", "--learners", "sweep-slow", "--tasks", "sweep-toy", "--seeds", "0-2",
+            "--max-trials", "5000", "--eval-episodes", "1", "--workers", "2", "--tracking-uri", mlflow_uri, "--quiet"]
+    with HarnessProcess(args, tmp_path) as proc:
+        marker = f"to stop (resumable): kill -USR1 {proc.proc.pid} "
+        proc.wait_for(marker, timeout=60)
+        proc.signal(signal.SIGUSR1)
+        code = proc.wait(timeout=180)
+        output = proc.output()
+    assert code == 130, output
+    assert "0 failed" in output and "Traceback" not in output and "re-run the same command to continue" in output

@@ -228,6 +228,35 @@ def test_revert_goes_back_to_the_best_parameters_with_smaller_steps() -> None:
         McPilco(load_task("cartpole")().spec, {"revert": True}, 0)
 
 
+class _ScriptedSearch:
+    """A particle objective whose estimates and fixed-particle checks follow a script (zero gradients)."""
+
+    def __init__(self, estimates: list[float], checks: list[float]) -> None:
+        self.x = torch.zeros(1, requires_grad=True)
+        self.estimates, self.checks = list(estimates), list(checks)
+
+    def parameters(self) -> list[torch.Tensor]:
+        return [self.x]
+
+    def value_and_grad(self, gen, dropout):
+        return self.estimates.pop(0), True, [torch.zeros(1)]
+
+    def value(self, gen):
+        return torch.tensor(self.checks.pop(0) if self.checks else 0.0)
+
+
+def test_lr_growth_is_not_counted_when_the_window_that_set_a_best_also_ends_the_search() -> None:
+    """Window means 10, 11, 10.5, 10.6; checks (start 10) 9, 12, 8, 7. Window 2 backtracks (rate 1 -> 0.5, the one
+    reduction allowed), window 3's new best grows it to 0.75, window 4 sets a new best but its mean rose with no
+    reduction left: the search ends at rate 0.75, one growth (not a growth to 1 that no step used)."""
+    scripted = _ScriptedSearch([10.0, 11.0, 10.5, 10.6], [10.0, 9.0, 12.0, 8.0, 7.0, 7.0])
+    result = optimise_particles(scripted, max_steps=10, lr=1.0, dropout=0.0, dropout_step=0.1, lr_decay=0.5, window=1,
+                                min_improvement=0.0, seed=0, keep="best", revert=True, lr_reductions=1, lr_growth=1.5)
+    assert (result.steps, result.reverts, result.growths) == (4, 1, 1)
+    assert result.rates == [1.0, 0.5, 0.75] and result.final_lr == 0.75
+    assert result.J_after == 7.0
+
+
 def test_lr_growth_raises_the_rate_after_each_new_best_up_to_lr_and_is_off_by_default() -> None:
     """revert with lr_growth=2 (a trust region): the rate after each window is the one before it halved by a
     backtrack, doubled (capped at lr) after a window end the fixed particles rated below the best so far, and never

@@ -175,6 +175,19 @@ def test_fresh_start_tolerance_comes_from_the_task_preset_and_zero_turns_it_off(
     assert Pilco(CartPole().spec, {"fresh_start_tol": "0.1"}, seed=0).fresh_start_tol == 0.1
 
 
+def test_restart_tolerance_comes_from_the_task_preset_and_zero_turns_it_off(monkeypatch):
+    from dataclasses import replace
+
+    from plugins.pilco import presets
+
+    assert Pilco(CartPole().spec, {"restart_tol": "0.05"}, seed=0).restart_tol == 0.05
+    monkeypatch.setitem(presets.PRESETS, "cartpole", replace(presets.PRESETS["cartpole"], restart_tol=0.07))
+    assert Pilco(CartPole().spec, {}, seed=0).restart_tol == 0.07
+    assert Pilco(CartPole().spec, {}, seed=0).options_used()["restart_tol"] == 0.07
+    assert Pilco(CartPole().spec, {"restart_tol": "0"}, seed=0).restart_tol is None
+    assert Pilco(CartPole().spec, {"restart_tol": "0.1"}, seed=0).restart_tol == 0.1
+
+
 def test_plan_with_noise_uses_the_tasks_measurement_noise_and_refuses_trig_policies():
     """The unicycle's policy sees raw states: planning adds the task's observation noise to its
     input. Cart-pole's sees sin/cos of the angle: a clear option error naming the fix."""
