@@ -156,7 +156,7 @@ class Pilco(Learner):
                "trial, the last trial's realised cost within this fraction of its prediction) for restarts near the policy: "
                "when it holds, also search from `restarts` copies of the policy with every parameter tensor moved by "
                "restart_scale times its spread, and keep the lowest J (a basin-hopping restart: fresh starts lose what the "
-               "run learned; default: the task preset's, else off; 0 = off)", low=0.0),
+               "run learned; default: the task preset's, cart-pole 0.05, else off; 0 = off)", low=0.0),
         Option("restarts", int, 2, "searches from perturbed copies of the policy when restart_tol's test holds", low=1),
         Option("restart_scale", float, 0.1, "restart_tol's perturbation, in units of each parameter tensor's spread", low=0.0),
         Option("early_starts", int, 1, "policy searches in each of the first early_start_trials trials: from the "

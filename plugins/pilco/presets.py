@@ -49,8 +49,11 @@ class Preset:
 
 
 PRESETS: dict[str, Preset] = {
-    # settings_cp.m; 50 centres as the paper's R^305 policy (V0.9 code: 10)
-    "cartpole": Preset(controller="rbf", num_centres=50, initial_rollouts=1, sparse_threshold=300, max_trials=15),
+    # settings_cp.m; 50 centres as the paper's R^305 policy (V0.9 code: 10). Not the reference's: restarts near a stalled
+    # policy (restart_tol=0.05), chosen on tuning seeds 120-139 side by side with the default on one machine, where a
+    # seed's two runs part only where a restart is kept (results/findings_cartpole.md): 20/20 solved against 19/20 (seed
+    # 132, stuck at J 25-31 for 15 trials without, solved at 24 s with), median 16 s both
+    "cartpole": Preset(controller="rbf", num_centres=50, initial_rollouts=1, sparse_threshold=300, max_trials=15, restart_tol=0.05),
     # settings_cdp.m: 200 centres, FITC with 400 pseudo-inputs, 40 policy iterations
     "double-pendulum": Preset(controller="rbf", num_centres=200, initial_rollouts=1, sparse_threshold=400, max_trials=40),
     # settings_unicycle.m: linear policy, 10 random rollouts at u_max/5; the GP does not see the yaw

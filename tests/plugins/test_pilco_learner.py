@@ -18,7 +18,8 @@ from plugins.pilco.policy import layout_for, transitions
 from tasks.cartpole import CartPole
 from tests.harness.toy import RecordingProgress
 
-TINY = {"num_centres": "5", "policy_max_evaluations": "15", "gp_max_evals": "40", "plots": "true"}
+# restart_tol 0: the cart-pole preset's restarts off, so that each test counts the searches of its own mechanism
+TINY = {"num_centres": "5", "policy_max_evaluations": "15", "gp_max_evals": "40", "plots": "true", "restart_tol": "0"}
 
 
 def test_pilco_smoke_on_short_cartpole():
@@ -180,7 +181,11 @@ def test_restart_tolerance_comes_from_the_task_preset_and_zero_turns_it_off(monk
 
     from plugins.pilco import presets
 
-    assert Pilco(CartPole().spec, {"restart_tol": "0.05"}, seed=0).restart_tol == 0.05
+    from tasks.dmc_cartpole import DMCCartpole
+
+    assert Pilco(CartPole().spec, {}, seed=0).restart_tol == 0.05  # the cart-pole preset's (findings_cartpole.md)
+    assert Pilco(DMCCartpole().spec, {}, seed=0).restart_tol is None
+    assert Pilco(DMCCartpole().spec, {"restart_tol": "0.05"}, seed=0).restart_tol == 0.05
     monkeypatch.setitem(presets.PRESETS, "cartpole", replace(presets.PRESETS["cartpole"], restart_tol=0.07))
     assert Pilco(CartPole().spec, {}, seed=0).restart_tol == 0.07
     assert Pilco(CartPole().spec, {}, seed=0).options_used()["restart_tol"] == 0.07
