@@ -199,10 +199,9 @@ class Pilco(Learner):
                                         spec.horizon, grow or None, rule)  # threshold 0: off
         self.cost_width = o["cost_width"] or preset.cost_width
         self.num_pseudo = o["num_pseudo"] or self.preset.sparse_threshold
-        tol = o["fresh_start_tol"] if o["fresh_start_tol"] is not None else preset.fresh_start_tol
-        self.fresh_start_tol = tol or None  # 0: off
-        tol = o["restart_tol"] if o["restart_tol"] is not None else preset.restart_tol
-        self.restart_tol = tol or None  # 0: off
+        # the stall rules' tolerances: the option if given, else the task preset's; 0 (or None): off
+        self.fresh_start_tol, self.restart_tol = (
+            (o[name] if o[name] is not None else getattr(preset, name)) or None for name in ("fresh_start_tol", "restart_tol"))
         # a bool option cannot say "unset": the preset's value holds unless the option was given
         noise = o["plan_with_noise"] if "plan_with_noise" in (options or {}) else preset.plan_with_noise
         self.policy_noise_std = spec.measurement_noise_std if noise else None

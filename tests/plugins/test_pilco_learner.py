@@ -180,7 +180,6 @@ def test_restart_tolerance_comes_from_the_task_preset_and_zero_turns_it_off(monk
     from dataclasses import replace
 
     from plugins.pilco import presets
-
     from tasks.dmc_cartpole import DMCCartpole
 
     assert Pilco(CartPole().spec, {}, seed=0).restart_tol == 0.05  # the cart-pole preset's (findings_cartpole.md)
