@@ -157,8 +157,9 @@ def main(argv: list[str] | None = None) -> None:
     progress = FileProgress(header, args.out, tracker, previous_wall)
     try:
         result = run(config, tracker=tracker, progress=progress, resume_run_id=resume_id)
-    except StopRequested as exc:
-        print(f"{exc}: continue with the same command and --resume-checkpoint {args.out.with_suffix('.ckpt')}", flush=True)
+    except StopRequested as exc:  # the file says so too: left as it was, it would read "in progress"
+        progress.finish(f"({len(progress.records)} trial(s) written, {time.strftime('%H:%M:%S')} UTC; {exc}: continue with "
+                        f"the same command and --resume-checkpoint {args.out.with_suffix('.ckpt')})")
         return
     print(f"solved: {result.solved}; interaction to success: {result.interaction_time_to_success}; "
           f"trials: {result.trials}; stop: {result.stop_reason}", flush=True)

@@ -43,6 +43,8 @@ def test_resume_from_copied_checkpoint(tmp_path):
     first = _rows(tmp_path / "first.json")
     stopped_after = max(first)
     assert stopped_after < 3 and (tmp_path / "first.ckpt").is_file()
+    last_line = (tmp_path / "first.md").read_text().strip().splitlines()[-1]
+    assert "in progress" not in last_line and "SIGUSR1" in last_line and "first.ckpt" in last_line, last_line
 
     done = _run(["--out", str(tmp_path / "rest.md"), "--resume-checkpoint", str(tmp_path / "first.ckpt")])
     rest = _rows(tmp_path / "rest.json")

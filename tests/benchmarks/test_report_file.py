@@ -10,7 +10,7 @@ from pathlib import Path
 
 import pytest
 
-from benchmarks.report_file import command_line, machine_line, write_report
+from benchmarks.report_file import command_line, cpu_description, machine_line, write_report
 
 BENCHMARKS = Path(__file__).resolve().parents[2] / "benchmarks"
 
@@ -28,6 +28,28 @@ def test_machine_line_says_when_and_under_what_load():
     assert line.startswith("Date: 20") and " UTC; " in line
     assert "load average (1 min) 1.2 at the start, " in line and line.endswith(" at the end.")
     assert "at the start" not in machine_line()
+
+
+CPUINFO = """processor\t: 0
+vendor_id\t: AuthenticAMD
+cpu family\t: 25
+model\t\t: 1
+model name\t: AMD EPYC
+
+processor\t: 1
+cpu family\t: 23
+model\t\t: 49
+model name\t: another CPU
+"""
+
+
+def test_cpu_description_names_family_and_model_of_the_first_processor():
+    """A virtual machine's "AMD EPYC" is any of five generations: family and model tell them apart."""
+    text = cpu_description(CPUINFO)
+    assert text.startswith("AMD EPYC (family 25 model 1")
+    assert "another CPU" not in text and "family 23" not in text
+    assert cpu_description("").split(" (")[0] != ""  # without /proc/cpuinfo: platform's name
+    assert f"; {cpu_description()}, " in machine_line()
 
 
 def test_write_report_creates_the_folder_writes_once_and_says_where(tmp_path, capsys):
