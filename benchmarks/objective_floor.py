@@ -126,8 +126,9 @@ def measure(config: str, repeats: int) -> dict:
     theta = objective.get_flat()
     objective(theta)  # compiles the kernels for this d
     work = {"entries": 0, "madds": 0.0, "cpu": 0.0, "calls": defaultdict(int)}
+    by_kernel = defaultdict(lambda: {"entries": 0, "madds": 0.0, "cpu": 0.0})
     originals = {}
-    for d, module in fused._modules.items():
+    for (d, _), module in fused._modules.items():
         for name in KERNELS:
             original = getattr(module, name)
             originals[(module, name)] = original
@@ -144,10 +145,14 @@ def measure(config: str, repeats: int) -> dict:
                     entries = entries_formed(_name, nb)
                     work["entries"] += entries
                     work["madds"] += entries * MADDS[key](_d)
+                    by_kernel[_name]["entries"] += entries
+                    by_kernel[_name]["madds"] += entries * MADDS[key](_d)
                 work["calls"][_name] += counted
                 start = time.process_time()
                 out = _original(*args)
-                work["cpu"] += time.process_time() - start
+                elapsed = time.process_time() - start
+                work["cpu"] += elapsed
+                by_kernel[_name]["cpu"] += elapsed
                 return out
 
             setattr(module, name, recorded)
@@ -161,7 +166,14 @@ def measure(config: str, repeats: int) -> dict:
         for (module, name), original in originals.items():
             setattr(module, name, original)
     return {"total": statistics.median(totals), "kernel": work["cpu"] / repeats, "entries": work["entries"] / repeats,
-            "madds": work["madds"] / repeats, "calls": {k: v // repeats for k, v in work["calls"].items()}}
+            "madds": work["madds"] / repeats, "calls": {k: v // repeats for k, v in work["calls"].items()},
+            "by_kernel": {k: {q: v / repeats for q, v in w.items()} for k, w in by_kernel.items()}}
+
+
+def _pass_columns_text() -> str:
+    import plugins.pilco.fused as fused
+
+    return f"{fused.PASS_COLUMNS} columns of B per pass of its saved-gradient sweeps"
 
 
 def main(argv: list[str] | None = None) -> None:
@@ -169,16 +181,26 @@ def main(argv: list[str] | None = None) -> None:
     parser.add_argument("--configs", nargs="+", default=list(TASK_CONFIGS),
                         help="task sizes of benchmarks/task_objectives.py or cart-pole ones of benchmarks/ab_objective.py")
     parser.add_argument("--repeats", type=int, default=5)
+    parser.add_argument("--pass-columns", type=int, default=None,
+                        help="the fused kernel's columns of B per pass (plugins.pilco.fused.PASS_COLUMNS; default: this CPU's)")
     parser.add_argument("--out", type=Path, default=None)
     args = parser.parse_args(argv)
     torch.set_num_threads(1)
+    if args.pass_columns is not None:
+        import plugins.pilco.fused as fused
+
+        fused.PASS_COLUMNS = args.pass_columns  # read by kernels() whenever a caller names none
     load_start = load_average()
 
     peak = peak_madds_per_second()
     exp_rate = exp_per_second()
-    rows = []
+    rows, kernel_rows = [], []
     for config in args.configs:
         m = measure(config, args.repeats)
+        for name, w in sorted(m["by_kernel"].items()):
+            kfloor = w["madds"] / peak + w["entries"] / exp_rate
+            kernel_rows.append(f"| {config} | `{name}` | {m['calls'][name]} | {w['entries'] / 1e6:.1f} | {w['madds'] / w['entries']:.1f} | "
+                               f"{1e3 * w['cpu']:.0f} | {1e3 * kfloor:.0f} | {w['cpu'] / kfloor:.2f}x |")
         floor = m["madds"] / peak + m["entries"] / exp_rate
         rest = m["total"] - m["kernel"]
         rows.append(
@@ -190,13 +212,18 @@ def main(argv: list[str] | None = None) -> None:
         f"Command: `{command_line(__file__, argv)}`  ",
         f"{machine_line(load_start)}  ",
         f"One torch thread, CPU time; J + dJ: median of {args.repeats} after a warm-up (the `fused` kernel, this checkout's "
-        f"default). Definitions in the script's docstring.", "",
+        f"default; {_pass_columns_text()}). Definitions in the script's docstring.", "",
         f"This core's rates: **{2 * peak / 1e9:.1f} GFLOP/s** ({peak / 1e9:.2f} G multiply-adds/s, a 1024 x 1024 float64 "
         f"matrix product on one thread) and **{exp_rate / 1e9:.3f} G exp/s** (the kernel's `exp_inline`, vectorised, in L1).", "",
         "| configuration | J + dJ (ms) | Q kernel (ms) | entries of Q formed (M) = exp | multiply-adds (G) | Q kernel's floor: "
         "multiply-adds + exp (ms) | Q kernel against its floor | the rest of J + dJ (ms) | J + dJ with the Q kernel at its floor (ms) |",
         "|---|---|---|---|---|---|---|---|---|",
-        *rows,
+        *rows, "",
+        "By kernel (the same J + dJ): the symmetric kernels form the diagonal pairs' upper triangle and save the gradients "
+        "of both their sums (by row and, for the mirror, by column); the rows kernels the off-diagonal pairs' row products only.", "",
+        "| configuration | kernel | calls | entries (M) | multiply-adds per entry | CPU (ms) | floor (ms) | against its floor |",
+        "|---|---|---|---|---|---|---|---|",
+        *kernel_rows,
     ]
     write_report(lines, args.out)
 

@@ -43,7 +43,10 @@ them for constant columns whose gradient nobody reads. Here:
   stands for its mirror too, the diagonal counts half), so half the ``exp``; their ``G^T A`` is
   ``G B M``, a ``(n, d) x (d, d)`` product in the driver instead of a second sweep (a diagonal pair 1.5-1.7x
   cheaper, about what an off-diagonal one costs: ``results/benchmarks/fused_pair_cost.md``; J + dJ 1.05-1.09x,
-  ``results/benchmarks/ab_objective_symmetric_pairs.md``).
+  ``results/benchmarks/ab_objective_symmetric_pairs.md``);
+* the saved-gradient sweeps of ``forward_jac_sym`` and ``forward_jac_rows`` take :data:`PASS_COLUMNS` columns
+  of ``B`` per pass over a pair of rows, so that a pass's accumulators (and the mirror weights) fit the vector
+  registers.
 
 Around the contraction, moment matching's own per-step work on the ``G = E + 2P`` groups of ``(n, d)``
 scaled differences (``Z``, ``Z W``, the kernel's factors; in the backward pass the sums that take the
@@ -103,6 +106,25 @@ from harness.vector_width import configure as _configure_vector_width
 #: server CPUs); before the first ``@njit`` below, which creates numba's CPU target (:mod:`harness.vector_width`)
 VECTOR_WIDTH = _configure_vector_width()
 
+
+def _pass_columns() -> int:
+    """:data:`PASS_COLUMNS` for this CPU: 4 where the vector registers are AVX2's 16, else 1000 (one pass)."""
+    from numba.core.codegen import get_host_cpu_features
+
+    return 1000 if "+avx512f" in get_host_cpu_features().split(",") else 4
+
+
+#: columns of ``B`` per pass of the saved-gradient sweeps of ``forward_jac_sym`` and ``forward_jac_rows``
+#: (:func:`source`): each column needs two row accumulators in registers, and in the symmetric kernels two
+#: mirror weights, ``4 d`` in all with every column in one pass (36 at the double pendulum's d = 9, 2 d in
+#: the rows kernel), against the 16 vector registers of AVX2; a further pass re-reads the rows of ``Q`` and
+#: forms ``G``'s again (two multiplies). With 4 on an AMD EPYC Zen 3 (AVX2), in isolation, the symmetric
+#: kernel ran 1.2-1.3x and the rows kernel 1.05x (d = 9) and 1.2x (d = 11) faster than with one pass; in
+#: J + dJ the unicycle 1.08x and the double pendulum 1.01x, within this machine's noise
+#: (``results/benchmarks/ab_objective_pass_columns_zen3.md``); the same products, summed in another order (the
+#: saved gradients move by ~1e-15 relative). On CPUs with AVX-512 (32 registers) the passes are unmeasured,
+#: so there it stays 1000: every column in one pass, as before
+PASS_COLUMNS = _pass_columns()
 
 #: fast-math flags of the kernels: reassociation (vectorised sums) and contraction (FMA); no
 #: assumptions about NaN or infinity, so a NaN in the inputs still shows in the results
@@ -528,13 +550,7 @@ _JAC_TRACE = '''{{zero_acc_h}}
 #: G = Q w_l w_r^T the row weight c0 = w_l[i0] is applied once per row (gA's sums run over Q w_r); hu is the
 #: forward sum r0, and gu = w_l * q_wr is left to the driver: c0 * s0 here would share its product with
 #: sq's multiply-add, which LLVM then no longer fuses, and J would no longer be forward_q's to the bit
-_JAC_ROWS = '''{zero_acc}
-            for j in range(n):
-                w = wr[p, j]
-                g0 = q0[j] * w
-                g1 = q1[j] * w
-{body_rows}
-{store_rows}
+_JAC_ROWS = '''{passes_rows}
             if p < ntrace:
                 t1 = 1.0 if two else 0.0
 {zero_acc_h}
@@ -655,9 +671,9 @@ def {signature}:
                 sq += c1 * s1
 #JAC-BEGIN
 {load_b01}
-""" + _JAC_QUAD.format(cols="range(i0u, nu)") + """
+{passes_g}
             if p < ntrace:
-""" + _JAC_TRACE.format(cols="range(i0u, nu)", inv_k_i1="inv_k[p, i1, j]") + """
+{passes_h}
 #JAC-END
         quad[p] = 2.0 * sq
         if p < ntrace:
@@ -721,14 +737,17 @@ def _forward_source(name: str, **fields) -> str:
     return "\n".join(kept)
 
 
-def source(d: int) -> str:
+def source(d: int, pass_columns: int | None = None) -> str:
     """The kernels' Python source for input dimension ``d``: ``forward_q``, ``forward_jac`` (its sums and
     the gradients of each pair's two outputs, for a backward pass that then only scales and adds),
     ``backward`` (reads a stored block ``Q`` holding pairs ``first .. last - 1``) and ``backward_q``
     (forms two rows of ``Q`` at a time into the scratch rows ``q0, q1 (n,)`` from ``L, Rt``, as
-    ``forward_jac`` does)."""
+    ``forward_jac`` does). ``pass_columns``: see :data:`PASS_COLUMNS` (default)."""
     if d < 1:
         raise ValueError(f"input dimension must be >= 1, got {d}")
+    per_pass = PASS_COLUMNS if pass_columns is None else int(pass_columns)
+    if per_pass < 1:
+        raise ValueError(f"pass_columns must be >= 1, got {pass_columns}")
     cs, ks = range(d), range(d + 2)
 
     def lines(template: str, indent: int, over=cs) -> str:
@@ -777,14 +796,42 @@ def source(d: int) -> str:
         """forward_jac_rows' loop body: g0, g1 times B into s0_c, s1_c and their column sums into ``out[p, d]``."""
         return "\n".join(times_b(indent) + [" " * indent + f"{out}[p, {d}, j] += g0 * {w0} + g1 * {w1}"])
 
-    forward_fields.update(body_rows=row_products("gBv", 16, "c0", "c1"),
-                          store_rows=(lines("gA[p, i0, {c}] = c0 * s0_{c}", 12) + "\n" + " " * 12 + "if two:\n"
-                                      + lines("gA[p, i1, {c}] = c1 * s1_{c}", 16)),
-                          body_rows_h=row_products("hBv", 20, "1.0", "t1"))
+    forward_fields.update(body_rows_h=row_products("hBv", 20, "1.0", "t1"))
+    def passes(out: str, acc: str, indent: int, g_lines: list[str], cols: str, mirror: bool, first: list[str],
+               scale: tuple[str, str] = ("", ""), sums: str | None = None) -> str:
+        """A saved-gradient sweep over the columns ``cols`` of rows i0, i1, ``per_pass`` columns of B a pass (each
+        pass forms G's two rows again with ``g_lines``): G's rows times B into ``acc``'s rows (times ``scale``), with
+        ``mirror`` also the mirrors' part into ``out``'s columns; ``first``: loop lines of the first pass only;
+        ``sums``: the array that takes G's row sums (``G 1``), summed in the first pass."""
+        pad, body = " " * indent, " " * (indent + 4)
+        text = [pad + "su0 = 0.0", pad + "su1 = 0.0"] if sums else []
+        first = ["su0 += g0", "su1 += g1", *first] if sums else first
+        for k, start in enumerate(range(0, d, per_pass)):
+            cc = range(start, min(start + per_pass, d))
+            text += [pad + f"s{r}_{c} = 0.0" for r in (0, 1) for c in cc]
+            text += [pad + f"for j in {cols}:"] + [body + line for line in g_lines]
+            text += [body + f"b{c} = Bt[p, {c}, j]" for c in cc]
+            text += [body + f"s{r}_{c} += g{r} * b{c}" for r in (0, 1) for c in cc]
+            if mirror:
+                text += [body + f"{out}[p, {c}, j] += g0 * a0_{c} + g1 * a1_{c}" for c in cc]
+            if k == 0:
+                text += [body + line for line in first]
+            text += [pad + f"{acc}[p, i0, {c}] = {scale[0]}s0_{c}" for c in cc] + [pad + "if two:"]
+            text += [body + f"{acc}[p, i1, {c}] = {scale[1]}s1_{c}" for c in cc]
+        if sums:
+            text += [pad + f"{sums}[p, i0] = su0", pad + "if two:", body + f"{sums}[p, i1] = su1"]
+        return "\n".join(text)
+
+    forward_fields.update(passes_rows=passes("gBv", "gA", 12, ["w = wr[p, j]", "g0 = q0[j] * w", "g1 = q1[j] * w"], "range(n)",
+                                             False, [f"gBv[p, {d}, j] += g0 * c0 + g1 * c1"], ("c0 * ", "c1 * ")))
     # the symmetric kernels loop over columns j >= i0 and multiply the mirrors' part by B's rows i0, i1
     # (there A = B M: the driver maps G B to G A)
     sym_fields = dict(forward_fields, rows=rows.replace("for j in range(n):", "for j in range(i0u, nu):"),
-                      load_b01=lines("a0_{c} = Bt[p, {c}, i0]", 12) + "\n" + lines("a1_{c} = Bt[p, {c}, i1]", 12))
+                      load_b01=lines("a0_{c} = Bt[p, {c}, i0]", 12) + "\n" + lines("a1_{c} = Bt[p, {c}, i1]", 12),
+                      passes_g=passes("gBv", "gA", 12, ["w = wr[p, j]", "g0 = q0[j] * (c0 * w)", "g1 = q1[j] * (c1 * w)"],
+                                      "range(i0u, nu)", True, [f"gBv[p, {d}, j] += g0 + g1"], sums="gu"),
+                      passes_h=passes("hBv", "hA", 16, ["g0 = q0[j] * inv_k[p, i0, j]", "g1 = q1[j] * inv_k[p, i1, j]"],
+                                      "range(i0u, nu)", True, [f"hBv[p, {d}, j] += g0 + g1"], sums="hu"))
     return (
         _HEADER.format(d=d, fastmath="{" + ", ".join(repr(f) for f in sorted(FASTMATH)) + "}",
                        exp_digest=hashlib.sha256(inspect.getsource(exp_inline.py_func).encode()).hexdigest()[:12])
@@ -806,22 +853,24 @@ def cache_dir() -> Path:
     return base / "pilco-harness" / "kernels"
 
 
-_modules: dict[int, ModuleType] = {}
+_modules: dict[tuple[int, int], ModuleType] = {}
 _lock = threading.Lock()
 
 
-def kernels(d: int) -> ModuleType:
-    """The compiled kernels (``forward``, ``backward``) for input dimension ``d``.
+def kernels(d: int, pass_columns: int | None = None) -> ModuleType:
+    """The compiled kernels (``forward``, ``backward``) for input dimension ``d`` (and the symmetric kernels'
+    columns per pass, default :data:`PASS_COLUMNS`: :func:`source`).
 
     The source is written once per ``d`` under :func:`cache_dir` (named by its hash, so a change of
     the template makes a new file) and imported; numba compiles it at the first call and caches the
     machine code next to it.
     """
+    key = (d, PASS_COLUMNS if pass_columns is None else int(pass_columns))
     with _lock:
-        module = _modules.get(d)
+        module = _modules.get(key)
         if module is not None:
             return module
-        text = source(d)
+        text = source(*key)
         digest = hashlib.sha256(text.encode()).hexdigest()[:12]
         folder = cache_dir()
         folder.mkdir(parents=True, exist_ok=True)
@@ -835,7 +884,7 @@ def kernels(d: int) -> ModuleType:
         module = importlib.util.module_from_spec(spec)
         sys.modules[name] = module
         spec.loader.exec_module(module)
-        _modules[d] = module
+        _modules[key] = module
         return module
 
 
@@ -939,7 +988,7 @@ def _symmetric_jacobian(j: dict, q_wr: np.ndarray, M: np.ndarray, first: int, la
 
 def forward(left, right, w_left, w_right, inv_k, workspace, out=None, threads: int = 1, block=1,
             inline: bool = False, jacobian: dict | None = None, symmetric=None, columns: bool = True,
-            min_parallel_work: int = MIN_PARALLEL_WORK):
+            min_parallel_work: int = MIN_PARALLEL_WORK, pass_columns: int | None = None):
     """``quad (P,)``, ``trace (E',)``, ``Q w_right (P, n)``; ``Q`` into ``out`` (kept) if given.
 
     ``threads`` pair groups run side by side where the contraction forms at least ``min_parallel_work``
@@ -956,6 +1005,7 @@ def forward(left, right, w_left, w_right, inv_k, workspace, out=None, threads: i
     ``w_left[p] = w_right[p]``, ``inv_k[p]`` symmetric and ``left[p, :, :d] = right[p, :, :d] M_p``
     (moment matching's diagonal pairs ``(a, a)``: ``M = 2 T``). Their kernels form only the upper
     triangle of ``Q`` (half the ``exp``), and their ``G^T A`` is ``G B M``, no product of its own.
+    ``pass_columns``: the saved-gradient sweeps' columns of ``B`` per pass (:data:`PASS_COLUMNS`).
 
     ``columns=False`` (with ``jacobian``): the saved gradients without those by basis point of the right
     factor (``G^T A`` and ``Q^T w_l``; ``jacobian["columns"]`` says so), ``kernels(d).forward_jac_rows``:
@@ -973,7 +1023,7 @@ def forward(left, right, w_left, w_right, inv_k, workspace, out=None, threads: i
         if out is not None:
             raise ValueError("inline forms Q without storing it: no Q can be kept (out must be None)")
         d = left.shape[2] - 2
-        module = kernels(d)
+        module = kernels(d, pass_columns)
         L, Rt = _numpy(left.contiguous()), _numpy(right.mT.contiguous())
         if jacobian is not None:
             # forward_jac reads A = left[..., :d] and Bt = right[..., :d]^T by index, A[p, i, c] and Bt[p, c, j]

@@ -359,7 +359,7 @@ class MomentMatchingGP:
 
     def __init__(self, posterior: GPPosterior, kernel: str | None = None, threads: int = 1,
                  symmetric_pairs: bool = True, compiled_glue: bool = True, lean_jacobian: bool = True,
-                 min_parallel_work: int | None = None) -> None:
+                 min_parallel_work: int | None = None, pass_columns: int | None = None) -> None:
         device = posterior.beta.device
         self.kernel = resolve_kernel(kernel, device)
         #: with the fused kernel, form the kernel's factors in one compiled sweep (:meth:`_compiled_factors`)
@@ -385,7 +385,9 @@ class MomentMatchingGP:
             self.min_parallel_work = fused.MIN_PARALLEL_WORK if min_parallel_work is None else int(min_parallel_work)
             options = dict(threads=self.threads, block=_pair_block_size, inline=inline,
                            min_parallel_work=self.min_parallel_work)
-            self._contract_forward = functools.partial(fused.forward, **options)
+            #: the fused kernel's saved-gradient sweeps, columns of B per pass (default fused.PASS_COLUMNS; kept
+            #: for benchmarks/ab_objective.py: ``pass_columns=1000`` is every column in one pass, as before)
+            self._contract_forward = functools.partial(fused.forward, pass_columns=pass_columns, **options)
             self._contract_backward = functools.partial(fused.backward, **options)
         else:
             self._contract_forward, self._contract_backward = _contract_forward, _contract_backward

@@ -37,3 +37,11 @@ def test_cartpole_counts_every_output_pair_once_per_step():
     assert 0 < m["kernel"] < m["total"]
     # the recording wrappers are gone afterwards
     assert {name: getattr(fused.kernels(6), name) for name in before} == before
+
+
+def test_the_kernels_add_up():
+    m = measure("cart-pole full n=100", repeats=1)
+    parts = m["by_kernel"].values()
+    assert set(m["by_kernel"]) == set(m["calls"])
+    assert sum(w["entries"] for w in parts) == m["entries"] and sum(w["madds"] for w in parts) == m["madds"]
+    assert sum(w["cpu"] for w in parts) == pytest.approx(m["kernel"], rel=1e-9, abs=1e-9)

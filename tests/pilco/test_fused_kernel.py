@@ -206,6 +206,36 @@ def test_symmetric_pairs_do_not_depend_on_the_number_of_threads(threads) -> None
         assert torch.equal(a, b)
 
 
+@pytest.mark.parametrize("num_outputs,n,d", [(3, 33, 9), (2, 9, 5)])
+@pytest.mark.parametrize("symmetric", [True, False])
+def test_saved_gradients_in_passes_are_one_sweep_reordered(num_outputs, n, d, symmetric) -> None:
+    """The saved gradients of the symmetric and the rows kernels (``columns=False``) with 1, 2, 3 or all columns of
+    B per pass: the forward sums bit for bit (they come before the passes), every saved gradient to rounding (each
+    column's products are the same; only how the compiler vectorises a shorter loop's sums may differ), and every
+    count of at least d is one pass, one source."""
+    left, right, wl, wr, inv_k, g_quad, g_trace, M = _symmetric_inputs(num_outputs, n, d, seed=5)
+    sym = {"symmetric": M} if symmetric else {}
+
+    def run(columns):
+        jacobian = {}
+        sums = fused.forward(left, right, wl, wr, inv_k, moments._Workspace(), inline=True, jacobian=jacobian,
+                             columns=False, pass_columns=columns, **sym)
+        return sums, jacobian
+
+    one_sums, one_jac = run(1000)
+    for columns in (1, 2, 3):
+        sums, jac = run(columns)
+        assert all(torch.equal(a, b) for a, b in zip(sums, one_sums))
+        for key in ("gA", "gu", "gBv", "hA", "hu", "hBv"):
+            got, want = jac[key], one_jac[key]
+            if key in ("gBv", "hBv") and not symmetric:  # the rows kernel writes only their last row (G^T 1)
+                got, want = got[:, d], want[:, d]
+            assert np.abs(got - want).max() <= 1e-13 * np.abs(want).max(), (columns, key)
+    assert fused.source(d, d) == fused.source(d, 1000) != fused.source(d, d - 1)
+    with pytest.raises(ValueError, match="pass_columns"):
+        fused.source(d, 0)
+
+
 def test_small_contractions_run_on_one_thread(monkeypatch) -> None:
     """Below ``min_parallel_work`` entries of ``Q`` the pairs are not split (no pool thread is asked), at or
     above it they are, with the same result; ``MomentMatchingGP`` passes its own threshold on."""
