@@ -125,7 +125,7 @@ def measure(config: str, repeats: int) -> dict:
     objective = build(config)  # a task of benchmarks/task_objectives.py or a cart-pole size of benchmarks/bench_objective.py
     theta = objective.get_flat()
     objective(theta)  # compiles the kernels for this d
-    work = {"entries": 0, "madds": 0.0, "cpu": 0.0, "calls": defaultdict(int)}
+    calls = defaultdict(int)
     by_kernel = defaultdict(lambda: {"entries": 0, "madds": 0.0, "cpu": 0.0})
     originals = {}
     for (d, _), module in fused._modules.items():
@@ -143,16 +143,12 @@ def measure(config: str, repeats: int) -> dict:
                         raise SystemExit(f"kernel {_name} has no multiply-add count (MADDS): add its count before using this floor")
                     counted = True
                     entries = entries_formed(_name, nb)
-                    work["entries"] += entries
-                    work["madds"] += entries * MADDS[key](_d)
                     by_kernel[_name]["entries"] += entries
                     by_kernel[_name]["madds"] += entries * MADDS[key](_d)
-                work["calls"][_name] += counted
+                calls[_name] += counted
                 start = time.process_time()
                 out = _original(*args)
-                elapsed = time.process_time() - start
-                work["cpu"] += elapsed
-                by_kernel[_name]["cpu"] += elapsed
+                by_kernel[_name]["cpu"] += time.process_time() - start
                 return out
 
             setattr(module, name, recorded)
@@ -165,9 +161,10 @@ def measure(config: str, repeats: int) -> dict:
     finally:
         for (module, name), original in originals.items():
             setattr(module, name, original)
-    return {"total": statistics.median(totals), "kernel": work["cpu"] / repeats, "entries": work["entries"] / repeats,
-            "madds": work["madds"] / repeats, "calls": {k: v // repeats for k, v in work["calls"].items()},
-            "by_kernel": {k: {q: v / repeats for q, v in w.items()} for k, w in by_kernel.items()}}
+    per_kernel = {k: {q: v / repeats for q, v in w.items()} for k, w in by_kernel.items()}
+    return {"total": statistics.median(totals), **{q: sum(w[q] for w in per_kernel.values()) for q in ("entries", "madds")},
+            "kernel": sum(w["cpu"] for w in per_kernel.values()), "calls": {k: v // repeats for k, v in calls.items()},
+            "by_kernel": per_kernel}
 
 
 def _pass_columns_text() -> str:
