@@ -43,6 +43,14 @@ def requested() -> str:
                      f"tuning) or unset it (the CPU's widest)")
 
 
+def host_has_avx512() -> bool:
+    """Whether the CPU numba compiles for has AVX-512 (``+avx512f`` in its host features), whatever the vector
+    width chosen: AVX-512 also doubles the vector registers to 32 (:data:`plugins.pilco.fused.PASS_COLUMNS`)."""
+    from numba.core.codegen import get_host_cpu_features
+
+    return "+avx512f" in get_host_cpu_features().split(",")  # what numba would use: "+avx512f,-xop,..."
+
+
 def configure() -> str:
     """Lets numba's CPU target use 512-bit vectors where the CPU has AVX-512; idempotent.
 
@@ -62,12 +70,11 @@ def configure() -> str:
         return _state
     from numba.core.codegen import get_host_cpu_features
 
-    features = get_host_cpu_features()  # what numba would use: "+avx512f,-xop,..."
-    if "+avx512f" not in features.split(","):
+    if not host_has_avx512():
         _state = "default"
     elif "_toplevel_target_context" in vars(registry.cpu_target):  # a numba function exists already
         _state = "too late"
     else:
-        config.CPU_FEATURES = f"{features},-{_PREFER_256}"
+        config.CPU_FEATURES = f"{get_host_cpu_features()},-{_PREFER_256}"
         _state = "512"
     return _state

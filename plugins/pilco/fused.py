@@ -101,17 +101,11 @@ from numba.core.untyped_passes import TranslateByteCode
 from numba.extending import intrinsic
 
 from harness.vector_width import configure as _configure_vector_width
+from harness.vector_width import host_has_avx512
 
 #: 512-bit vectors where the CPU has AVX-512 (LLVM's tuning would keep the kernels at 256 bits on Intel's
 #: server CPUs); before the first ``@njit`` below, which creates numba's CPU target (:mod:`harness.vector_width`)
 VECTOR_WIDTH = _configure_vector_width()
-
-
-def _pass_columns() -> int:
-    """:data:`PASS_COLUMNS` for this CPU: 4 where the vector registers are AVX2's 16, else 1000 (one pass)."""
-    from numba.core.codegen import get_host_cpu_features
-
-    return 1000 if "+avx512f" in get_host_cpu_features().split(",") else 4
 
 
 #: columns of ``B`` per pass of the saved-gradient sweeps of ``forward_jac_sym`` and ``forward_jac_rows``
@@ -124,7 +118,7 @@ def _pass_columns() -> int:
 #: (``results/benchmarks/ab_objective_pass_columns_zen3.md``); the same products, summed in another order (the
 #: saved gradients move by ~1e-15 relative). On CPUs with AVX-512 (32 registers) the passes are unmeasured,
 #: so there it stays 1000: every column in one pass, as before
-PASS_COLUMNS = _pass_columns()
+PASS_COLUMNS = 1000 if host_has_avx512() else 4
 
 #: fast-math flags of the kernels: reassociation (vectorised sums) and contraction (FMA); no
 #: assumptions about NaN or infinity, so a NaN in the inputs still shows in the results
@@ -858,8 +852,8 @@ _lock = threading.Lock()
 
 
 def kernels(d: int, pass_columns: int | None = None) -> ModuleType:
-    """The compiled kernels (``forward``, ``backward``) for input dimension ``d`` (and the symmetric kernels'
-    columns per pass, default :data:`PASS_COLUMNS`: :func:`source`).
+    """The compiled kernels (``forward``, ``backward``) for input dimension ``d`` (and the saved-gradient sweeps'
+    columns of ``B`` per pass, default :data:`PASS_COLUMNS`: :func:`source`).
 
     The source is written once per ``d`` under :func:`cache_dir` (named by its hash, so a change of
     the template makes a new file) and imported; numba compiles it at the first call and caches the
